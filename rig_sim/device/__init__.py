@@ -1,0 +1,1 @@
+"""The rig as a device: register map (the datasheet), register access, transports."""

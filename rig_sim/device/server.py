@@ -1,0 +1,212 @@
+"""The rig as a network device: Modbus TCP and/or Modbus RTU on a serial port,
+serving one register space, with the board's clock (real time, K x real time, or
+lockstep).
+
+pymodbus 3.16 is used for framing and transport only: its request PDUs call
+`async_getValues`/`async_setValues` on `server.context`, which we point at our
+own `RigRegisters`; a request-handler subclass tags each request with its
+connection so that control of the rig belongs to one client.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import logging
+import os
+import socket
+import threading
+import time
+from dataclasses import dataclass
+
+from pymodbus import FramerType
+from pymodbus.pdu.device import ModbusDeviceIdentification
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.server.requesthandler import ServerRequestHandler
+from pymodbus.simulator import SimData, SimDevice
+
+from ..firmware.board import Board
+from . import register_map as M
+from .datastore import CURRENT_CLIENT, RigRegisters
+
+
+class ServiceError(RuntimeError):
+    """A start-up problem the user can fix (one-line message)."""
+
+
+def _handler_class(registers: RigRegisters):
+    class RigRequestHandler(ServerRequestHandler):
+        async def handle_request(self):
+            token = CURRENT_CLIENT.set(self)
+            try:
+                await super().handle_request()
+            finally:
+                CURRENT_CLIENT.reset(token)
+
+        def callback_disconnected(self, exc):
+            # a client that goes away gives control back; if it left the rig armed,
+            # the watchdog will disarm it (nobody feeds the heartbeat any more)
+            registers.release_if_owner(self)
+            super().callback_disconnected(exc)
+
+    return RigRequestHandler
+
+
+def _bind(server, registers: RigRegisters):
+    handler = _handler_class(registers)
+    server.context = registers
+    server.callback_new_connection = lambda: handler(
+        server, server.trace_packet, server.trace_pdu, server.trace_connect)
+    return server
+
+
+def _placeholder_device() -> SimDevice:
+    # pymodbus insists on a SimDevice at construction; it is replaced by _bind.
+    return SimDevice(id=0, simdata=[SimData(1, values=0)])
+
+
+def _identity(board: Board) -> ModbusDeviceIdentification:
+    ident = ModbusDeviceIdentification()
+    ident.VendorName = "Virtual CBC Lab"
+    ident.ProductCode = board.spec.model
+    ident.ProductName = board.spec.model
+    ident.ModelName = board.spec.model
+    ident.MajorMinorRevision = f"{M.FIRMWARE_VERSION // 100}.{M.FIRMWARE_VERSION % 100:02d}"
+    return ident
+
+
+@dataclass
+class Pacing:
+    mode: str = "realtime"      # "realtime" (time_scale may be != 1) or "lockstep"
+    time_scale: float = 1.0
+    tick_s: float = 0.001       # pacer wake-up interval
+    slip_s: float = 0.25        # fall this far behind and the pacer counts an overrun and slips
+
+
+class Pacer(threading.Thread):
+    """Advances the board in step with the wall clock (times time_scale)."""
+
+    def __init__(self, registers: RigRegisters, pacing: Pacing):
+        super().__init__(name="rig-pacer", daemon=True)
+        self.registers = registers
+        self.board = registers.board
+        self.pacing = pacing
+        self.stop_event = threading.Event()
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        b = self.board
+        k = self.pacing.time_scale
+        rate = b.rate
+        max_chunk = max(1, int(rate * k * 0.002))     # ~2 ms of wall time per chunk at most
+        t0 = time.monotonic()
+        seq0 = b.seq
+        self.registers.running = True
+        try:
+            while not self.stop_event.is_set():
+                now = time.monotonic()
+                due = seq0 + int((now - t0) * k * rate)
+                behind = due - b.seq
+                if behind > self.pacing.slip_s * k * rate:
+                    b.overruns += 1
+                    t0, seq0 = now, b.seq               # a missed deadline: time slips
+                    behind = 0
+                while behind > 0 and not self.stop_event.is_set():
+                    n = min(behind, max_chunk)
+                    b.advance(n)
+                    behind -= n
+                if (self.registers.owner is not None or b.armed) and b.check_watchdog(lockstep=False):
+                    self.registers.free_control()
+                self.stop_event.wait(self.pacing.tick_s)
+        except BaseException as exc:  # surface to the service, don't die silently
+            self.error = exc
+        finally:
+            self.registers.running = False
+
+
+def port_free(host: str, port: int) -> None:
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise ServiceError(f"port {port} on {host} is already in use") from None
+            raise ServiceError(f"cannot bind {host}:{port}: {exc.strerror}") from None
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+class RigService:
+    """Board + registers + clock + transports, run on one asyncio loop."""
+
+    def __init__(self, board: Board, pacing: Pacing, host: str | None = "127.0.0.1",
+                 port: int | None = 5020, serial: str | None = None, baudrate: int = 115200):
+        if host is None and serial is None:
+            raise ServiceError("nothing to serve: give a TCP port or --serial PORT")
+        self.board = board
+        self.pacing = pacing
+        self.registers = RigRegisters(board, lockstep=pacing.mode == "lockstep")
+        self.host, self.port = host, port
+        self.serial, self.baudrate = serial, baudrate
+        self.servers: list = []
+        self.pacer: Pacer | None = None
+
+    def check(self) -> None:
+        if self.host is not None:
+            if self.port == 0:
+                self.port = free_port(self.host)
+            port_free(self.host, self.port)
+        if self.serial is not None and not os.path.exists(self.serial):
+            raise ServiceError(f"serial port {self.serial} does not exist")
+
+    async def start(self) -> None:
+        self.check()
+        ident = _identity(self.board)
+        if self.host is not None:
+            tcp = ModbusTcpServer(_placeholder_device(), framer=FramerType.SOCKET,
+                                  identity=ident, address=(self.host, self.port))
+            _bind(tcp, self.registers)
+            await tcp.serve_forever(background=True)
+            self.servers.append(tcp)
+        if self.serial is not None:
+            rtu = ModbusSerialServer(_placeholder_device(), framer=FramerType.RTU,
+                                     identity=ident, port=self.serial, baudrate=self.baudrate)
+            _bind(rtu, self.registers)
+            try:
+                await rtu.serve_forever(background=True)
+            except RuntimeError:
+                raise ServiceError(f"cannot open serial port {self.serial}") from None
+            self.servers.append(rtu)
+        if self.pacing.mode != "lockstep":
+            self.pacer = Pacer(self.registers, self.pacing)
+            self.pacer.start()
+
+    async def stop(self) -> None:
+        if self.pacer is not None:
+            self.pacer.stop_event.set()
+            self.pacer.join(timeout=5)
+        for s in self.servers:
+            await s.shutdown()
+
+    async def run_forever(self, stop: asyncio.Event) -> None:
+        await self.start()
+        try:
+            while not stop.is_set():
+                if self.pacer is not None and self.pacer.error is not None:
+                    raise self.pacer.error
+                try:
+                    await asyncio.wait_for(stop.wait(), timeout=0.5)
+                except asyncio.TimeoutError:
+                    pass
+        finally:
+            await self.stop()
+
+
+def quiet_pymodbus(verbose: bool = False) -> None:
+    """pymodbus logs every malformed frame at ERROR; a device ignores them quietly."""
+    logging.getLogger("pymodbus").setLevel(logging.DEBUG if verbose else logging.CRITICAL)
