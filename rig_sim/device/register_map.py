@@ -292,19 +292,19 @@ def as_markdown(compact: bool = True) -> str:
     for reg in REGISTERS:
         if compact and any(reg.name.startswith(f"{ch}_") for ch in CHANNELS):
             continue
-        lines.append(f"| {reg.table} or {reg.address} | `{reg.name}` | {reg.type} | {reg.unit} | "
-                     f"{reg.access} or {_fmt_range(reg)} | {reg.rigs} | {reg.description} |")
+        lines.append(f"| {reg.table} | {reg.address} | `{reg.name}` | {reg.type} | {reg.unit} | "
+                     f"{reg.access} | {_fmt_range(reg)} | {reg.rigs} | {reg.description} |")
     if compact:
         for ch in CHANNELS:
             b = CHANNEL_BASE[ch]
-            lines.append(f"| input or {b} | `{ch}_periods` | u32 |  | r |  | both | period counter of this estimate |")
-            lines.append(f"| input or {b + 2}..{b + 31} | `{ch}_mean_<c>` | f32 x 15 |  | r |  | both | "
+            lines.append(f"| input | {b} | `{ch}_periods` | u32 |  | r |  | both | period counter of this estimate |")
+            lines.append(f"| input | {b + 2}..{b + 31} | `{ch}_mean_<c>` | f32 x 15 |  | r |  | both | "
                          f"mean over navg periods of {ch} coefficient c in {', '.join(COEFS)} |")
-            lines.append(f"| input or {b + 32}..{b + 61} | `{ch}_var_<c>` | f32 x 15 |  | r |  | both | "
+            lines.append(f"| input | {b + 32}..{b + 61} | `{ch}_var_<c>` | f32 x 15 |  | r |  | both | "
                          f"variance of the same |")
     end = RING_BASE + RING_CAPACITY * RING_RECORD - 1
     lines += [
-        f"| input or {RING_BASE}..{end} | ring buffer | int16 x {RING_RECORD} x {RING_CAPACITY} |  | r |  | both | "
+        f"| input | {RING_BASE}..{end} | ring buffer | int16 x {RING_RECORD} x {RING_CAPACITY} |  | r |  | both | "
         f"sample records ({', '.join(RING_FIELDS)}) |",
         "",
         "Status bits: " + ", ".join(f"{b} = {n}" for n, b in STATUS_BITS.items()) + ".  ",

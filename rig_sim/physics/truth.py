@@ -435,13 +435,17 @@ def _fixed_parameter_solve(problem, us_guess: np.ndarray, value_scaled: float) -
 # --------------------------------------------------------------------------------------
 
 def _flutter_numeric_jacobian(params: FlutterParams, V: float, E: np.ndarray) -> np.ndarray:
-    """Jacobian of rhs.flutter_deriv at the rest state (central differences)."""
+    """Jacobian of rhs.flutter_deriv at the rest state (central differences).
+
+    The right-hand side vanishes at rest, so a tiny step (1e-10) loses nothing to
+    cancellation and keeps the error of merely-C1 terms (|v| v damping) at ~1e-10.
+    """
     K = flutter_kernel_params(params, V)
     J = np.empty((6, 6))
     dp, dm = np.empty(6), np.empty(6)
     for j in range(6):
         e = np.zeros(6)
-        h = 1e-7
+        h = 1e-10
         e[j] = h
         flutter_deriv(e, dp, 0.0, 0.0, K, E)
         flutter_deriv(-e, dm, 0.0, 0.0, K, E)
@@ -503,8 +507,9 @@ class FlutterBranch:
     from the shooting samples), heave_dc (mean heave, m), floquet_max (largest
     modulus among the non-trivial multipliers), stable (floquet_max < 1) and
     states (the orbit's state at phase 0, where h' = 0: shape (N, 6)).
-    ``folds`` lists each fold as a dict (V, heave_amp, pitch_amp, period, index:
-    the branch point just before it). ``hopf`` is (V, f_Hz).
+    ``folds`` lists each fold, located to solver precision, as a dict (V, heave_amp,
+    pitch_amp, period, floquet_max, state, index: the branch point just before it).
+    ``hopf`` is (V, f_Hz).
     """
 
     V: np.ndarray
@@ -598,7 +603,8 @@ def flutter_lco_branch(params: FlutterParams = FlutterParams(), effects=None, *,
         fp = _locate_fold(problem, tr, k)
         rec = _flutter_orbit_record(problem, fp)
         folds.append(dict(V=rec["V"], heave_amp=rec["heave_amp"], pitch_amp=rec["pitch_amp"],
-                          period=rec["period"], index=k, state=rec["state"]))
+                          period=rec["period"], floquet_max=rec["floquet_max"], index=k,
+                          state=rec["state"]))
 
     def col(name, dtype=float):
         return np.array([r[name] for r in recs], dtype=dtype)
@@ -667,7 +673,8 @@ class ForcedCurve:
     Arrays: Phi, amp (first-harmonic displacement amplitude, m), x_max (max |x|, m),
     current_amp (first-harmonic coil current amplitude, A), floquet_max (largest
     multiplier modulus), stable, states (state (x, x', i) at t = 0, when the forcing
-    Phi cos(w t) peaks). ``folds``: dicts (Phi, amp, index).
+    Phi cos(w t) peaks). ``folds``: dicts (Phi, amp, floquet_max, state, index: the
+    curve point just before the fold), each located to solver precision.
     """
 
     freq_hz: float
@@ -739,7 +746,8 @@ def oscillator_scurve(freq_hz: float, params: OscillatorParams = OscillatorParam
     folds = []
     for k in tr.folds:
         rec = _oscillator_record(problem, _locate_fold(problem, tr, k))
-        folds.append(dict(Phi=rec["Phi"], amp=rec["amp"], index=k, state=rec["state"]))
+        folds.append(dict(Phi=rec["Phi"], amp=rec["amp"], floquet_max=rec["floquet_max"],
+                          index=k, state=rec["state"]))
 
     def col(name, dtype=float):
         return np.array([r[name] for r in recs], dtype=dtype)
