@@ -37,7 +37,7 @@ PAGE = ROOT / "docs" / "physics.md"
 
 FLUTTER_UNITS = {
     "b": ("m", "semi-chord"),
-    "a": ("-", "elastic-axis position, semi-chords aft of mid-chord"),
+    "a": ("-", "elastic-axis position from mid-chord, in semi-chords, positive aft"),
     "rho": ("kg/m^3", "air density"),
     "m_w": ("kg", "wing mass"),
     "m_T": ("kg", "total heaving mass (paper: m)"),
@@ -288,7 +288,7 @@ def main() -> None:
         rows.append(f"| {V:g} | {fmt(r['stable'])} | {fmt(r['unstable'])} |")
     flutter_amp_table = "\n".join(rows)
 
-    curves = {f: oscillator_scurve(f, op) for f in SCURVE_FREQS}
+    curves = {f: oscillator_scurve(f, op, ds_max=0.1) for f in SCURVE_FREQS}  # dense for plots
     oscillator_figure(curves, op, IMG / "oscillator_truth.png")
     rows = ["| f (Hz) | jump-up fold Φ (m/s²) | amp. there (mm) | jump-down fold Φ (m/s²) "
             "| amp. there (mm) |", "|---|---|---|---|---|"]

@@ -11,6 +11,7 @@ connection so that control of the rig belongs to one client.
 from __future__ import annotations
 
 import asyncio
+import collections
 import errno
 import logging
 import os
@@ -20,10 +21,14 @@ import time
 from dataclasses import dataclass
 
 from pymodbus import FramerType
+from pymodbus.constants import ExcCodes
+from pymodbus.pdu import ExceptionResponse
 from pymodbus.pdu.device import ModbusDeviceIdentification
+from pymodbus.pdu.register_message import ReadWriteMultipleRegistersRequest
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import SimData, SimDevice
+from pymodbus.transport import CommType
 
 from ..firmware.board import Board
 from . import register_map as M
@@ -34,9 +39,63 @@ class ServiceError(RuntimeError):
     """A start-up problem the user can fix (one-line message)."""
 
 
+# Modbus over serial line (V1.02, 2.5.1.1): a frame interrupted by silence is
+# incomplete and the receiver discards it, so a master recovers from line garbage
+# by pausing. pymodbus's RTU framer keeps a partial frame forever (the next valid
+# request is then swallowed as its tail). The spec's t3.5 is 1.75 ms above
+# 19200 Bd, but host-side delivery (pty relays, USB-serial latency timers) splits
+# one frame by more than that, so the receiver allows this much silence.
+RTU_FRAME_SILENCE_S = 0.02
+
+
 def _handler_class(registers: RigRegisters):
     class RigRequestHandler(ServerRequestHandler):
+        """pymodbus's handler plus: the request's connection (for control of the
+        rig), one queued PDU per scheduled handling (pymodbus keeps only the last
+        decoded PDU, so two requests decoded before the first is handled ran the
+        second twice and the first never), every complete frame of one read
+        decoded (pipelined TCP requests), the RTU inter-frame silence, and FC23
+        validating its read part before it writes."""
+
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self._pending: collections.deque = collections.deque()
+            self._rtu = self.comm_params.comm_type == CommType.SERIAL
+            self._last_rx = 0.0
+
+        def datagram_received(self, data, addr):
+            if self._rtu:
+                now = time.monotonic()
+                if self.recv_buffer and now - self._last_rx > RTU_FRAME_SILENCE_S:
+                    self.recv_buffer = b""          # stale partial frame
+                self._last_rx = now
+            super().datagram_received(data, addr)
+            while self.recv_buffer:                  # further frames of the same read
+                cut = self.callback_data(self.recv_buffer, addr)
+                if cut <= 0:
+                    break
+                self.recv_buffer = self.recv_buffer[cut:]
+
+        def callback_data(self, data, addr=None):
+            used = super().callback_data(data, addr)
+            if self.last_pdu is not None:
+                self._pending.append((self.last_pdu, self.last_addr))
+            return used
+
         async def handle_request(self):
+            if not self._pending:
+                return
+            self.last_pdu, self.last_addr = self._pending.popleft()
+            pdu = self.last_pdu
+            if isinstance(pdu, ReadWriteMultipleRegistersRequest) and 1 <= pdu.read_count <= 125:
+                # FC23 writes before it reads; an illegal read part must not write
+                probe = registers.read(pdu.function_code, pdu.read_address, pdu.read_count, self)
+                if isinstance(probe, ExcCodes):
+                    response = ExceptionResponse(pdu.function_code, probe)
+                    response.transaction_id = pdu.transaction_id
+                    response.dev_id = pdu.dev_id
+                    self.server_send(response, self.last_addr)
+                    return
             token = CURRENT_CLIENT.set(self)
             try:
                 await super().handle_request()

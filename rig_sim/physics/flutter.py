@@ -89,7 +89,7 @@ def flutter_jacobian(p: FlutterParams, V: float) -> np.ndarray:
 
 
 def flutter_kernel_params(p: FlutterParams, V: float) -> np.ndarray:
-    """Flat float64 vector the compiled kernel reads: M^-1 (9), B (9), S (9), k_a2, k_a3.
+    """Flat float64 vector the compiled kernel reads: M^-1 (9), B (9), S (9), k_a2, k_a3, k_a, k_h.
 
     Recomputed only when the airspeed changes, so the per-sample work is a few
     3x3 products.

@@ -44,7 +44,7 @@ inside the unit circle (modulus < 1).
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -79,7 +79,7 @@ def effect_vector(rig: str, effects) -> np.ndarray:
     if isinstance(effects, Mapping):
         vec, _ = parse_effects(rig, [f"{k}={v}" for k, v in effects.items()])
         return vec
-    if isinstance(effects, Sequence) and effects and isinstance(effects[0], str):
+    if isinstance(effects, (list, tuple)) and all(isinstance(e, str) for e in effects):
         vec, _ = parse_effects(rig, list(effects))
         return vec
     vec = np.asarray(effects, dtype=float).ravel()
