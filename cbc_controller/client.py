@@ -38,7 +38,7 @@ class RigError(RuntimeError):
 class RingBlock:
     """Samples pulled from the ring buffer, in physical units."""
     first_record: int
-    seq: np.ndarray          # sample numbers (unwrapped)
+    sample: np.ndarray       # absolute sample numbers (time = sample / sample_rate)
     data: dict               # field -> float array
     gap: int                 # records lost before this block (overwritten before we read them)
 
@@ -168,17 +168,20 @@ class RigClient:
         return {"periods": block[f"{channel}_periods"], "mean": mean, "var": var}
 
     # ---- sample ring ------------------------------------------------------------------------------
-    def pull_ring(self, max_records: int | None = None) -> RingBlock:
-        """Records written since the last pull (the first pull starts at the head)."""
-        head = self.get("ring_head")
+    def pull_ring(self, max_records: int | None = None, restart: bool = False) -> RingBlock:
+        """Records written since the last pull (the first pull, or restart=True, starts at
+        the head and returns nothing). Records overwritten before we got to them are
+        counted in `gap`."""
+        pos = self.read("sample_seq", "ring_head")
+        head, now = pos["ring_head"], pos["sample_seq"]
         cap = M.RING_CAPACITY
-        if self._next_record is None:
+        if self._next_record is None or restart:
             self._next_record = head
         start = self._next_record
         gap = 0
-        if head - start > cap:
-            gap = head - start - cap
-            start = head - cap
+        if head - start > cap - 64:        # keep clear of the record being overwritten
+            gap = head - start - (cap - 64)
+            start = head - (cap - 64)
         stop = head if max_records is None else min(head, start + max_records)
         per_read = M.MAX_READ // M.RING_RECORD
         chunks = []
@@ -194,8 +197,14 @@ class RigClient:
         data = {f: counts[:, i] / 32767.0 * self._fs[f]
                 for i, f in enumerate(M.RING_FIELDS) if f in self._fs}
         data["phase"] = counts[:, M.RING_FIELDS.index("phase")] / 32767.0 * np.pi + np.pi
+        # unwrap the 16-bit sample numbers against the absolute counter read with the head
         seq16 = raw[:, 0].astype(np.int64)
-        return RingBlock(start, seq16, data, gap)
+        sample = np.zeros(len(seq16), dtype=np.int64)
+        if len(seq16):
+            last = (now - 1) - ((now - 1 - seq16[-1]) % 65536)
+            back = np.concatenate([[0], np.cumsum((seq16[1:] - seq16[:-1]) % 65536)])
+            sample = last - (back[-1] - back)
+        return RingBlock(start, sample, data, gap)
 
 
 _MAPPED = {(t, rig): {x for r in M.REGISTERS if r.table == t and r.applies_to(rig)

@@ -1,0 +1,280 @@
+"""CBC for the autonomous aerofoil: limit cycles at fixed airspeeds.
+
+The board's target is phase-locked to the response, x* = A0 + A1* cos(phi). For a
+target amplitude A1* the controlled rig settles on an orbit of amplitude A1; the
+open-loop limit cycles are the roots of e(A1*) = A1* - A1 (the control's
+fundamental vanishes there). At each airspeed the plan
+  1. scans A1* upward on a grid (starting near the previous airspeed's roots),
+  2. brackets each sign change of e and refines it by regula falsi (Illinois),
+  3. at every evaluation runs Picard iteration on the DC target (A0 <- measured DC)
+     and the phase-lock frequency (f <- measured frequency) and waits for the
+     board's variance gate,
+as the wind-tunnel campaign did (Lee et al. 2020). The method is the "bracketing
+search on the target amplitude at fixed airspeed" of DESIGN.md.
+
+Stability of a root from the sign of de/dA1*: the control is proportional in the
+amplitude error, so where the open-loop amplitude would decay (inside the
+unstable cycle and outside the stable one) the controlled response falls short
+of the target (e > 0), and where it would grow it overshoots (e < 0). A root where
+e goes from + to - with A1* is therefore an unstable cycle, from - to + a stable one.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ..engine import amplitude
+from ..messages import Arm, Configure, Disarm, Emit, RigFault, RigRestarted, Settle
+
+STABILITY_METHOD = "sign of de/dA* at the root (e = target amplitude - response amplitude)"
+
+DEFAULTS = {
+    "kp": 200.0, "kd": 60.0, "navg": 6, "transient_periods": 2, "frequency_guess": 2.4,
+    "amplitude_min": 0.006, "amplitude_max": 0.14, "amplitude_step": 0.012,
+    "tolerance_abs": 2e-5, "tolerance_rel": 1e-3, "frequency_tolerance": 0.002,
+    "dc_tolerance": 5e-5, "max_picard": 8, "max_refine": 16, "variance_rel": 5e-3,
+    "max_gate_polls": 4, "record_s": 2.0, "clamp": 300.0, "trip": 0.2,
+    "picard_harmonics": False, "quench_periods": 6, "max_quench": 8,
+}
+
+
+def _targets(a0: float, a1: float) -> dict:
+    t = {f"target_a{k}": 0.0 for k in range(1, 8)}
+    t.update({f"target_b{k}": 0.0 for k in range(1, 8)})
+    t["target_a0"] = a0
+    t["target_a1"] = a1
+    return t
+
+
+class _Search:
+    """State of the search at one airspeed."""
+
+    def __init__(self, V, o):
+        self.V = V
+        self.o = o
+        self.a0 = 0.0
+        self.harmonics = np.zeros(15)     # Picard-iterated target harmonics 2..7 (a and b)
+        self.f = o["frequency_guess"]
+        self.history: list[dict] = []
+        self.evals: dict[float, tuple] = {}
+        self.t_wall = time.time()
+
+    def evaluate(self, A, quick: bool = False):
+        """Generator: Picard on DC and frequency at target amplitude A, then the
+        variance gate. Returns (e, estimate) or (None, estimate) if no cycle formed.
+        `quick` (scanning: only the sign of e matters) stops after one Picard round
+        unless e is within a few tolerances of zero."""
+        o = self.o
+        est = None
+        A1_prev = None
+        tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
+        for it in range(o["max_picard"]):
+            yield Configure({**self.targets(A), "frequency": self.f})
+            est = yield Settle(periods=o["navg"] + o["transient_periods"])
+            if not math.isfinite(est.frequency) or est.frequency <= 0:
+                self.history.append(self._row(A, est, float("nan"), it))
+                return None, est
+            resp = est.fourier["response"]["mean"]
+            d_a0 = abs(resp[0] - self.a0)
+            d_f = abs(est.frequency - self.f)
+            self.a0 = float(resp[0])
+            self.f = float(min(max(est.frequency, 0.2), 19.0))
+            if o["picard_harmonics"]:
+                # higher harmonics of the target follow the response's, so the control
+                # has none: only its fundamental (the root condition) remains
+                for k in list(range(2, 8)) + list(range(9, 15)):
+                    self.harmonics[k] = float(resp[k])
+            A1 = amplitude(resp)
+            self.history.append(self._row(A, est, A - A1, it))
+            if quick and abs(A - A1) > 0.1 * A:
+                break                     # far from a root: the sign of e is all we need
+            # steady when the Picard variables have stopped moving AND the amplitude has
+            # (the DC and the amplitude settle on the slow time scale of the closed loop)
+            if (d_a0 < o["dc_tolerance"] and d_f < o["frequency_tolerance"]
+                    and A1_prev is not None and abs(A1 - A1_prev) < 0.5 * tol):
+                break
+            A1_prev = A1
+        for _ in range(o["max_gate_polls"]):          # variance gate on the fundamental
+            var = est.fourier["response"]["var"]
+            A1 = amplitude(est.fourier["response"]["mean"])
+            spread = math.sqrt(max(var[1], 0.0) + max(var[8], 0.0))
+            if spread <= o["variance_rel"] * max(A1, 1e-6):
+                break
+            est = yield Settle(periods=o["navg"])
+        A1 = amplitude(est.fourier["response"]["mean"])
+        e = A - A1
+        self.evals[A] = (e, est)
+        return e, est
+
+    def targets(self, A) -> dict:
+        t = _targets(self.a0, A)
+        for k in range(2, 8):
+            t[f"target_a{k}"] = self.harmonics[k]
+            t[f"target_b{k}"] = self.harmonics[k + 7]
+        return t
+
+    def _row(self, A, est, e, it):
+        return {"iteration": len(self.history), "picard": it, "target_amplitude": A,
+                "amplitude": amplitude(est.fourier["response"]["mean"]), "error": e,
+                "frequency": est.frequency, "dc": float(est.fourier["response"]["mean"][0]),
+                "rig_time": est.rig_time}
+
+
+def flutter_plan(config: dict):
+    """Build the plan for a flutter campaign from its (validated) config."""
+    o = {**DEFAULTS, **config.get("cbc", {})}
+    airspeeds = list(config["parameter"]["values"])
+
+    def plan(ctx):
+        yield Configure({"kp": o["kp"], "kd": o["kd"], "navg": int(o["navg"]), "phase_mode": 1,
+                         "clamp": o["clamp"], "trip": o["trip"], "airspeed": airspeeds[0],
+                         "frequency": o["frequency_guess"], **_targets(0.0, 0.0)})
+        index = len(ctx.previous)
+        prev_roots: list[float] = []
+        for V in airspeeds:
+            keys = [k for k in ctx.done if k.startswith(f"V={V:.4f}/")]
+            if keys and len(keys) >= 2:
+                continue                                 # this airspeed is in the file
+            s = _Search(V, o)
+            try:
+                roots = yield from _search_airspeed(s, o, prev_roots)
+            except RigRestarted:
+                yield Emit("note", {"text": f"V = {V}: link lost; airspeed repeated"})
+                s = _Search(V, o)
+                roots = yield from _search_airspeed(s, o, prev_roots)
+            prev_roots = [r["target"] for r in roots]
+            for k, r in enumerate(roots):
+                key = f"V={V:.4f}/root{k}"
+                if key in ctx.done:
+                    continue
+                yield Emit("point", _point_doc(index, key, s, r, o))
+                index += 1
+        yield Disarm()
+
+    return plan
+
+
+def _search_airspeed(s: _Search, o: dict, prev_roots: list[float]):
+    """Generator: the roots of e(A) at s.V, each refined; returns a list of root dicts.
+
+    The scan goes upward from a small target amplitude, from rest, and refines each
+    bracket as soon as it appears, so the target never jumps far below the orbit the
+    rig is on (a phase-locked target needs the orbit to encircle its centre). Near
+    the previous airspeed's roots the grid is refined, and the scan ends at the stable
+    cycle (beyond it e only grows: the model has no further cycle there).
+    """
+    yield Configure({"airspeed": s.V})
+    yield from _quench(o)
+    s.a0 = 0.0
+    yield Configure({"phase_mode": 1, **_targets(0.0, 0.0)})
+    yield Arm()
+    step = o["amplitude_step"]
+    grid = set(np.round(np.arange(o["amplitude_min"], o["amplitude_max"] + 1e-12, step), 6))
+    for r in prev_roots:                      # finer near where the roots were last time
+        grid.update(np.round([0.85 * r, 1.15 * r], 6))
+    grid = sorted(a for a in grid if o["amplitude_min"] <= a <= o["amplitude_max"])
+    roots = []
+    last = None
+    for A in grid:
+        try:
+            e, _ = yield from s.evaluate(A, quick=True)
+        except RigFault:
+            yield Emit("note", {"text": f"V = {s.V}: fault at target {A:.4f} m; skipped"})
+            yield Configure({**_targets(0.0, 0.0)})
+            s.a0 = 0.0
+            yield Arm()
+            last = None
+            continue
+        if e is None:
+            last = None
+            continue
+        if last is not None and last[1] * e < 0:
+            r = yield from _refine(s, o, last[0], A)
+            if r is not None:
+                roots.append(r)
+                if r["stable"]:
+                    break
+            e, _ = yield from s.evaluate(A, quick=True)   # back above the root, continue
+        last = (A, e)
+    yield Disarm()
+    return roots
+
+
+def _quench(o: dict):
+    """Bring the aerofoil to rest: a zero target on the forcing phase is plain PD
+    damping of the heave. Needed because the rig is bistable: without it an airspeed
+    would start on the last airspeed's stable cycle."""
+    yield Configure({"phase_mode": 0, **_targets(0.0, 0.0)})
+    yield Arm()
+    for _ in range(o["max_quench"]):
+        est = yield Settle(periods=o["quench_periods"])
+        if amplitude(est.fourier["response"]["mean"]) < 0.25 * o["amplitude_min"]:
+            break
+
+
+def _refine(s: _Search, o: dict, lo: float, hi: float):
+    """Illinois regula falsi on e(A) inside [lo, hi]; the root's record is taken at the end."""
+    elo, ehi = s.evals[lo][0], s.evals[hi][0]
+    if elo * ehi >= 0:
+        return None
+    decreasing = elo > 0 > ehi
+    side = 0
+    A, e, est = lo, elo, s.evals[lo][1]
+    for _ in range(o["max_refine"]):
+        A = hi - ehi * (hi - lo) / (ehi - elo)
+        e, est = yield from s.evaluate(A)
+        if e is None:
+            return None
+        # the root's location in A* is what matters: near the Hopf point e is shallow
+        # (|de/dA*| << 1), so a small |e| alone can leave A* far from the root
+        if abs(e) <= 1e-7 or (hi - lo) <= 2 * max(o["tolerance_abs"], o["tolerance_rel"] * A):
+            break
+        if abs(e) <= 0.2 * max(o["tolerance_abs"], o["tolerance_rel"] * A) * abs((ehi - elo) / (hi - lo)):
+            break                                  # e is within the root tolerance times its slope
+        if (e > 0) == (elo > 0):
+            lo, elo = A, e
+            if side == -1:
+                ehi /= 2
+            side = -1
+        else:
+            hi, ehi = A, e
+            if side == 1:
+                elo /= 2
+            side = 1
+    # the record: hold the converged target and log the full-rate time series
+    yield Configure({**s.targets(A), "frequency": s.f})
+    est = yield Settle(periods=o["navg"] + o["transient_periods"], record_s=o["record_s"])
+    resp = est.fourier["response"]["mean"]
+    return {"target": A, "error": A - amplitude(resp), "estimate": est,
+            "stable": not decreasing, "converged": abs(A - amplitude(resp)) <=
+            4 * max(o["tolerance_abs"], o["tolerance_rel"] * A)}
+
+
+def _point_doc(index, key, s: _Search, r: dict, o: dict) -> dict:
+    est = r["estimate"]
+    resp = est.fourier["response"]["mean"]
+    ts = est.samples or {}
+    extra = {"target_amplitude": r["target"], "final_error": r["error"],
+             "dc": float(resp[0]), "evaluations": len(s.history)}
+    if ts.get("x") is not None and len(ts["x"]):
+        extra["control_rms"] = float(np.sqrt(np.mean(ts["control"] ** 2)))
+        extra["response_rms"] = float(np.sqrt(np.mean((ts["x"] - resp[0]) ** 2)))
+        extra["gap_records"] = int(ts.get("gap_records", 0))
+    timeseries = {k: np.asarray(v) for k, v in ts.items() if k != "gap_records"}
+    settings = {"kp": o["kp"], "kd": o["kd"], "airspeed": s.V, "frequency": s.f,
+                "navg": o["navg"], **s.targets(r["target"])}
+    return {
+        "index": index, "key": key, "rig": "flutter", "parameter": float(s.V),
+        "parameter_name": "airspeed", "frequency": float(est.frequency),
+        "amplitude": amplitude(resp), "stable": bool(r["stable"]),
+        "stability_method": STABILITY_METHOD,
+        "status": "ok" if r["converged"] else "not_converged",
+        "settings": settings,
+        "fourier": {ch: {"mean": np.asarray(v["mean"]), "var": np.asarray(v["var"])}
+                    for ch, v in est.fourier.items()},
+        "history": s.history, "rig_time": est.rig_time, "wall_time": time.time() - s.t_wall,
+        "timeseries": timeseries, "extra": extra,
+    }
