@@ -2,4 +2,13 @@
 
 from .autonomous import flutter_plan
 
-__all__ = ["flutter_plan"]
+
+def plan_for(config: dict):
+    """The plan a validated campaign config asks for."""
+    if config["campaign"]["rig"] == "flutter":
+        return flutter_plan(config)
+    from .forced import oscillator_plan
+    return oscillator_plan(config)
+
+
+__all__ = ["flutter_plan", "plan_for"]

@@ -37,7 +37,7 @@ DEFAULTS = {
     "tolerance_abs": 2e-5, "tolerance_rel": 1e-3, "frequency_tolerance": 0.002,
     "dc_tolerance": 5e-5, "max_picard": 8, "max_refine": 16, "variance_rel": 5e-3,
     "max_gate_polls": 4, "record_s": 2.0, "clamp": 300.0, "trip": 0.2,
-    "picard_harmonics": False, "quench_periods": 6, "max_quench": 8,
+    "picard_harmonics": False, "polish": False, "polish_span": 0.04, "quench_periods": 6, "max_quench": 8,
 }
 
 
@@ -162,8 +162,9 @@ def _search_airspeed(s: _Search, o: dict, prev_roots: list[float]):
 
     The scan goes upward from a small target amplitude, from rest, and refines each
     bracket as soon as it appears, so the target never jumps far below the orbit the
-    rig is on (a phase-locked target needs the orbit to encircle its centre). Near
-    the previous airspeed's roots the grid is refined, and the scan ends at the stable
+    rig is on (a phase-locked target needs the orbit to encircle its centre). With
+    the previous airspeed's roots known it first tries just around them (+-20 %) and
+    falls back to the full grid if that misses a root; the scan ends at the stable
     cycle (beyond it e only grows: the model has no further cycle there).
     """
     yield Configure({"airspeed": s.V})
@@ -172,11 +173,30 @@ def _search_airspeed(s: _Search, o: dict, prev_roots: list[float]):
     yield Configure({"phase_mode": 1, **_targets(0.0, 0.0)})
     yield Arm()
     step = o["amplitude_step"]
-    grid = set(np.round(np.arange(o["amplitude_min"], o["amplitude_max"] + 1e-12, step), 6))
-    for r in prev_roots:                      # finer near where the roots were last time
-        grid.update(np.round([0.85 * r, 1.15 * r], 6))
-    grid = sorted(a for a in grid if o["amplitude_min"] <= a <= o["amplitude_max"])
-    roots = []
+    full = sorted(np.round(np.arange(o["amplitude_min"], o["amplitude_max"] + 1e-12, step), 6))
+    # with the previous airspeed's roots known, look just around them first
+    near = sorted({round(f * r, 6) for r in prev_roots for f in (0.8, 1.2)} | {o["amplitude_min"]})
+    roots: list = []
+    passes = [near, full] if prev_roots else [full]
+    for i, grid in enumerate(passes):
+        grid = [a for a in grid if o["amplitude_min"] <= a <= o["amplitude_max"]
+                and all(abs(a - r["target"]) > 0.5 * step for r in roots)]
+        found = yield from _scan(s, o, grid, roots)
+        if found or (roots and roots[-1]["stable"] and len(roots) >= len(prev_roots)):
+            break
+        if i + 1 < len(passes):                # start the full scan from rest again
+            yield from _quench(o)
+            s.a0 = 0.0
+            yield Configure({"phase_mode": 1, **_targets(0.0, 0.0)})
+            yield Arm()
+            roots.clear()
+    yield Disarm()
+    return roots
+
+
+def _scan(s: _Search, o: dict, grid: list, roots: list):
+    """Generator: evaluate e on an ascending grid, refining each sign change on the
+    way; returns True once the stable cycle has been found."""
     last = None
     for A in grid:
         try:
@@ -192,15 +212,39 @@ def _search_airspeed(s: _Search, o: dict, prev_roots: list[float]):
             last = None
             continue
         if last is not None and last[1] * e < 0:
-            r = yield from _refine(s, o, last[0], A)
-            if r is not None:
-                roots.append(r)
-                if r["stable"]:
-                    break
-            e, _ = yield from s.evaluate(A, quick=True)   # back above the root, continue
-        last = (A, e)
-    yield Disarm()
-    return roots
+            # a quick evaluation can catch a transient: confirm the sign change at
+            # steady state before spending a refinement on it
+            e, _ = yield from s.evaluate(A)
+            if e is not None and last[1] * e < 0:
+                r = yield from _refine(s, o, last[0], A)
+                if r is not None and r["converged"]:
+                    roots.append(r)
+                    if r["stable"]:
+                        return True
+                elif r is not None:
+                    yield Emit("note", {"text": f"V = {s.V}: no converged cycle in "
+                                                f"[{last[0]:.4f}, {A:.4f}] m (final error "
+                                                f"{r['error']:.2e} m); not logged as a point"})
+                e, _ = yield from s.evaluate(A, quick=True)   # back above the root, go on
+        last = (A, e) if e is not None else None
+    return False
+
+
+def _polish(s: _Search, o: dict, A: float, decreasing: bool):
+    d = o["polish_span"] * A
+    for probe in (A - d, A + d):
+        e, _ = yield from s.evaluate(probe)
+        if e is None:
+            return None
+    near = [(a, v[0]) for a, v in s.evals.items() if abs(a - A) <= 1.5 * d and v[0] is not None]
+    if len(near) < 3:
+        return A
+    a, e = np.array(near).T
+    slope, icpt = np.polyfit(a, e, 1)
+    if slope == 0 or (slope < 0) != decreasing:
+        return A                                   # the fit disagrees with the bracket: keep it
+    root = -icpt / slope
+    return float(root) if abs(root - A) <= 1.5 * d else A
 
 
 def _quench(o: dict):
@@ -216,41 +260,62 @@ def _quench(o: dict):
 
 
 def _refine(s: _Search, o: dict, lo: float, hi: float):
-    """Illinois regula falsi on e(A) inside [lo, hi]; the root's record is taken at the end."""
+    """Regula falsi (Illinois) on e(A*) inside [lo, hi], falling back to bisection
+    whenever an iteration fails to halve the bracket; then the root's record."""
     elo, ehi = s.evals[lo][0], s.evals[hi][0]
     if elo * ehi >= 0:
         return None
     decreasing = elo > 0 > ehi
-    side = 0
-    A, e, est = lo, elo, s.evals[lo][1]
+    slope = (ehi - elo) / (hi - lo)               # from measured values, never the halved ones
+    flo, fhi = elo, ehi                           # Illinois' working values
+    side, bisect = 0, False
+    A = lo
     for _ in range(o["max_refine"]):
-        A = hi - ehi * (hi - lo) / (ehi - elo)
+        width = hi - lo
+        A = 0.5 * (lo + hi) if bisect else hi - fhi * (hi - lo) / (fhi - flo)
         e, est = yield from s.evaluate(A)
         if e is None:
             return None
-        # the root's location in A* is what matters: near the Hopf point e is shallow
-        # (|de/dA*| << 1), so a small |e| alone can leave A* far from the root
-        if abs(e) <= 1e-7 or (hi - lo) <= 2 * max(o["tolerance_abs"], o["tolerance_rel"] * A):
-            break
-        if abs(e) <= 0.2 * max(o["tolerance_abs"], o["tolerance_rel"] * A) * abs((ehi - elo) / (hi - lo)):
-            break                                  # e is within the root tolerance times its slope
+        tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
         if (e > 0) == (elo > 0):
-            lo, elo = A, e
+            lo, elo, flo = A, e, e
             if side == -1:
-                ehi /= 2
+                fhi /= 2
             side = -1
         else:
-            hi, ehi = A, e
+            hi, ehi, fhi = A, e, e
             if side == 1:
-                elo /= 2
+                flo /= 2
             side = 1
-    # the record: hold the converged target and log the full-rate time series
-    yield Configure({**s.targets(A), "frequency": s.f})
-    est = yield Settle(periods=o["navg"] + o["transient_periods"], record_s=o["record_s"])
-    resp = est.fourier["response"]["mean"]
-    return {"target": A, "error": A - amplitude(resp), "estimate": est,
-            "stable": not decreasing, "converged": abs(A - amplitude(resp)) <=
-            4 * max(o["tolerance_abs"], o["tolerance_rel"] * A)}
+        slope = (ehi - elo) / (hi - lo)
+        # the root's location in A* is what matters: near the Hopf point e is shallow
+        # (|de/dA*| << 1), so a small |e| alone can leave A* far from the root
+        if (hi - lo) <= 2 * tol or abs(e) <= 0.2 * tol * abs(slope):
+            break
+        bisect = (hi - lo) > 0.5 * width
+    # polish: with process noise a single e can have the wrong sign, and bracketing
+    # trusts signs. Fit a line through steady evaluations around the root (the
+    # paper's surrogate idea, locally) and take its root.
+    if o["polish"]:
+        A = yield from _polish(s, o, A, decreasing)
+        if A is None:
+            return None
+    # the record: converge fully at the root's target, then log the full-rate time
+    # series; if the orbit drifted (an unstable cycle held by a marginal loop), again
+    tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
+    ok = False
+    for _ in range(3):
+        e, est = yield from s.evaluate(A)
+        if e is None:
+            return None
+        yield Configure({**s.targets(A), "frequency": s.f})
+        est = yield Settle(periods=o["navg"], record_s=o["record_s"])
+        e = A - amplitude(est.fourier["response"]["mean"])
+        # accepted only if the recorded orbit itself satisfies the root condition
+        ok = abs(e) <= 2 * tol
+        if ok:
+            break
+    return {"target": A, "error": e, "estimate": est, "stable": not decreasing, "converged": ok}
 
 
 def _point_doc(index, key, s: _Search, r: dict, o: dict) -> dict:
