@@ -52,6 +52,15 @@ def _fail(message: str, code: int = 2) -> int:
 
 
 # ------------------------------------------------------------------ embedded rig --------
+def _die_with_parent() -> None:
+    """Linux: the embedded rig gets SIGTERM when the controller dies, even by SIGKILL."""
+    try:
+        import ctypes
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
 class EmbeddedRig:
     """A `rig-sim serve` process on a free loopback port, stopped at the end."""
 
@@ -71,7 +80,8 @@ class EmbeddedRig:
             args += ["--effect-plugin", rig["plugin"]]
         self.args = args
         self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True, start_new_session=True)
+                                     text=True, start_new_session=True,
+                                     preexec_fn=_die_with_parent)
         line = self.proc.stdout.readline()
         if not line:
             err = self.proc.stderr.read().strip().splitlines()

@@ -67,7 +67,11 @@ class RigClient:
 
     # ---- connection ----------------------------------------------------------------------
     def connect(self) -> dict:
-        if not self._client.connect():
+        try:
+            ok = self._client.connect()
+        except OSError:
+            ok = False
+        if not ok:
             raise RigError(f"cannot connect to {self.url}")
         names = ["model", "firmware_version", "map_version", "rig_kind", "sample_rate",
                  "ring_capacity", "ring_record_words", "ring_base", "fs_x", "fs_x_dot",
@@ -102,7 +106,7 @@ class RigClient:
     def _call(self, fn, what: str, *args, **kw):
         try:
             rr = fn(*args, device_id=self.device_id, **kw)
-        except ModbusException as exc:
+        except (ModbusException, OSError) as exc:      # incl. connection reset / refused
             raise RigError(f"{self.url}: no answer to {what} ({exc})") from None
         return self._check(rr, what)
 

@@ -72,8 +72,8 @@ class PtyPair:
         self.a = str(tmp / "ttyA")
         self.b = str(tmp / "ttyB")
         self.proc = subprocess.Popen(
-            ["socat", "-d0", f"pty,raw,echo=0,link={self.a}", f"pty,raw,echo=0,link={self.b}"])
-        for _ in range(100):
+            ["socat", f"pty,raw,echo=0,link={self.a}", f"pty,raw,echo=0,link={self.b}"])
+        for _ in range(400):                 # up to 20 s on a loaded machine
             if os.path.exists(self.a) and os.path.exists(self.b):
                 break
             time.sleep(0.05)

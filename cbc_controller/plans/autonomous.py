@@ -37,7 +37,7 @@ DEFAULTS = {
     "tolerance_abs": 2e-5, "tolerance_rel": 1e-3, "frequency_tolerance": 0.002,
     "dc_tolerance": 5e-5, "max_picard": 8, "max_refine": 16, "variance_rel": 5e-3,
     "max_gate_polls": 4, "record_s": 2.0, "clamp": 300.0, "trip": 0.2,
-    "picard_harmonics": False, "polish": False, "polish_span": 0.04, "quench_periods": 6, "max_quench": 8,
+    "picard_harmonics": False, "polish": False, "polish_span": 0.04, "max_faults": 3, "quench_periods": 6, "max_quench": 8,
 }
 
 
@@ -59,6 +59,8 @@ class _Search:
         self.harmonics = np.zeros(15)     # Picard-iterated target harmonics 2..7 (a and b)
         self.f = o["frequency_guess"]
         self.history: list[dict] = []
+        self.roots_emitted: list[dict] = []
+        self.emit_root = None
         self.evals: dict[float, tuple] = {}
         self.t_wall = time.time()
 
@@ -132,29 +134,50 @@ def flutter_plan(config: dict):
         yield Configure({"kp": o["kp"], "kd": o["kd"], "navg": int(o["navg"]), "phase_mode": 1,
                          "clamp": o["clamp"], "trip": o["trip"], "airspeed": airspeeds[0],
                          "frequency": o["frequency_guess"], **_targets(0.0, 0.0)})
-        index = len(ctx.previous)
+        counter = {"index": len(ctx.previous)}
         prev_roots: list[float] = []
+        faults_in_a_row = 0
         for V in airspeeds:
             keys = [k for k in ctx.done if k.startswith(f"V={V:.4f}/")]
             if keys and len(keys) >= 2:
                 continue                                 # this airspeed is in the file
-            s = _Search(V, o)
-            try:
-                roots = yield from _search_airspeed(s, o, prev_roots)
-            except RigRestarted:
-                yield Emit("note", {"text": f"V = {V}: link lost; airspeed repeated"})
+            roots = None
+            for attempt in range(3):
                 s = _Search(V, o)
-                roots = yield from _search_airspeed(s, o, prev_roots)
-            prev_roots = [r["target"] for r in roots]
-            for k, r in enumerate(roots):
-                key = f"V={V:.4f}/root{k}"
-                if key in ctx.done:
-                    continue
-                yield Emit("point", _point_doc(index, key, s, r, o))
-                index += 1
+                s.emit_root = _root_emitter(ctx, counter, s, o)
+                try:
+                    roots = yield from _search_airspeed(s, o, prev_roots)
+                    faults_in_a_row = 0
+                    break
+                except RigRestarted as exc:
+                    yield Emit("note", {"text": f"V = {V}: link lost ({exc}); the airspeed is "
+                                                "repeated", "interrupted": f"V={V:.4f}"})
+                except RigFault as exc:
+                    faults_in_a_row += 1
+                    yield Emit("note", {"text": f"V = {V}: {exc}; the rest of this airspeed is "
+                                                "abandoned", "interrupted": f"V={V:.4f}"})
+                    break
+            if faults_in_a_row >= o["max_faults"]:
+                yield Emit("note", {"text": f"{faults_in_a_row} faults in a row: campaign stopped"})
+                break
+            prev_roots = [r["target"] for r in roots] if roots else prev_roots
         yield Disarm()
 
     return plan
+
+
+def _root_emitter(ctx, counter, s, o):
+    """Generator factory: the Emit for a refined root (skipped if already logged)."""
+    def emit(r):
+        k = sum(1 for _ in s.roots_emitted)
+        s.roots_emitted.append(r)
+        key = f"V={s.V:.4f}/root{k}"
+        if key in ctx.done:
+            return None
+        msg = Emit("point", _point_doc(counter["index"], key, s, r, o))
+        counter["index"] += 1
+        return msg
+    return emit
 
 
 def _search_airspeed(s: _Search, o: dict, prev_roots: list[float]):
@@ -162,10 +185,9 @@ def _search_airspeed(s: _Search, o: dict, prev_roots: list[float]):
 
     The scan goes upward from a small target amplitude, from rest, and refines each
     bracket as soon as it appears, so the target never jumps far below the orbit the
-    rig is on (a phase-locked target needs the orbit to encircle its centre). With
-    the previous airspeed's roots known it first tries just around them (+-20 %) and
-    falls back to the full grid if that misses a root; the scan ends at the stable
-    cycle (beyond it e only grows: the model has no further cycle there).
+    rig is on (a phase-locked target needs the orbit to encircle its centre). The
+    scan ends at the stable cycle (beyond it e only grows: the model has no further
+    cycle there). `prev_roots` is kept for a smarter grid later; unused for now.
     """
     yield Configure({"airspeed": s.V})
     yield from _quench(o)
@@ -173,23 +195,9 @@ def _search_airspeed(s: _Search, o: dict, prev_roots: list[float]):
     yield Configure({"phase_mode": 1, **_targets(0.0, 0.0)})
     yield Arm()
     step = o["amplitude_step"]
-    full = sorted(np.round(np.arange(o["amplitude_min"], o["amplitude_max"] + 1e-12, step), 6))
-    # with the previous airspeed's roots known, look just around them first
-    near = sorted({round(f * r, 6) for r in prev_roots for f in (0.8, 1.2)} | {o["amplitude_min"]})
+    grid = sorted(np.round(np.arange(o["amplitude_min"], o["amplitude_max"] + 1e-12, step), 6))
     roots: list = []
-    passes = [near, full] if prev_roots else [full]
-    for i, grid in enumerate(passes):
-        grid = [a for a in grid if o["amplitude_min"] <= a <= o["amplitude_max"]
-                and all(abs(a - r["target"]) > 0.5 * step for r in roots)]
-        found = yield from _scan(s, o, grid, roots)
-        if found or (roots and roots[-1]["stable"] and len(roots) >= len(prev_roots)):
-            break
-        if i + 1 < len(passes):                # start the full scan from rest again
-            yield from _quench(o)
-            s.a0 = 0.0
-            yield Configure({"phase_mode": 1, **_targets(0.0, 0.0)})
-            yield Arm()
-            roots.clear()
+    yield from _scan(s, o, grid, roots)
     yield Disarm()
     return roots
 
@@ -199,26 +207,22 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
     way; returns True once the stable cycle has been found."""
     last = None
     for A in grid:
-        try:
-            e, _ = yield from s.evaluate(A, quick=True)
-        except RigFault:
-            yield Emit("note", {"text": f"V = {s.V}: fault at target {A:.4f} m; skipped"})
-            yield Configure({**_targets(0.0, 0.0)})
-            s.a0 = 0.0
-            yield Arm()
-            last = None
-            continue
+        e, _ = yield from s.evaluate(A, quick=True)
         if e is None:
             last = None
             continue
         if last is not None and last[1] * e < 0:
             # a quick evaluation can catch a transient: confirm the sign change at
             # steady state before spending a refinement on it
+            e_lo, _ = yield from s.evaluate(last[0])
             e, _ = yield from s.evaluate(A)
-            if e is not None and last[1] * e < 0:
+            if e is not None and e_lo is not None and e_lo * e < 0:
                 r = yield from _refine(s, o, last[0], A)
                 if r is not None and r["converged"]:
                     roots.append(r)
+                    msg = s.emit_root(r) if s.emit_root else None
+                    if msg is not None:
+                        yield msg                  # logged now: a later fault cannot lose it
                     if r["stable"]:
                         return True
                 elif r is not None:

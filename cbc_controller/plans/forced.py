@@ -3,65 +3,80 @@
 Barton's method for a base-excited structure. At each forcing frequency f of
 ``config["frequencies"]`` the board's target runs on the forcing phase
 (``phase_mode`` 0), x*(t) = T0 + A cos(wt) + sum_{k=2..7} (Tak cos kwt + Tbk sin kwt),
-and the host's own forcing is off (``forcing_amplitude`` 0): the PD controller
-u = kp (x* - x) + kd (x*' - x') is the only excitation. Its fundamental *is* the
-forcing; the orbit it sustains is an open-loop orbit of the structure as soon as
-the rest of the control (DC and harmonics 2..7) vanishes. So, per point:
+and the host's own forcing is off (``forcing_amplitude`` 0, configurable as a
+feed-forward): the PD controller u = kp (x* - x) + kd (x*' - x') is then the only
+excitation. Its fundamental *is* the forcing; the orbit it sustains is an
+open-loop orbit of the structure as soon as the rest of the control (DC and
+harmonics 2..7) vanishes. Per point:
 
 1. **Step** the target's fundamental, target_a1 = A, target_b1 = 0, A rising from
-   ``amplitude_start``. Because the controller fixes the response amplitude rather
-   than the forcing, one sweep in A passes both folds of the S-curve and holds the
-   unstable middle branch on the way (proportional feedback stabilises it).
-2. **Picard iteration** on the DC and harmonics 2..7: target <- measured response
-   coefficients, until the control is *non-invasive*:
+   ``amplitude_start``. The controller fixes the response amplitude rather than
+   the forcing, so one sweep in A passes both folds of the S-curve and holds the
+   unstable middle branch on the way.
+2. **Picard iteration** on the DC and harmonics 2..7 (target <- the response's),
+   until the control is *non-invasive*:
 
-       ||(c0, c2..c7, s2..s7)|| <= max(noninvasive_tol * |c1 + i s1|,
-                                       noninvasive_sigmas * (its standard error))
+       r = ||(c0, c2..c7, s2..s7)|| <= max(noninvasive_tol * |c1 + i s1|,
+                                           noninvasive_sigmas * se(r))
 
    (c, s: the control channel's mean cosine/sine coefficients over navg periods;
-   the standard error is sqrt(sum var / navg) of the same 13 coefficients, i.e. the
-   residual is either below ``noninvasive_tol`` of the fundamental or
-   indistinguishable from the sensor-noise floor). The first target of a point is
-   the secant extrapolation of the previous two points' converged harmonics.
+   se(r) = sqrt(sum var / navg) of the same 13 coefficients: the residual is either
+   below ``noninvasive_tol`` of the fundamental or indistinguishable from the
+   sensor-noise floor). The response harmonics are read *through the controller*,
+   x_k = T_k - u_k / C(k w) (C the board's PD law, known exactly), see
+   `picard_update` for why. The first target of a point is the secant extrapolation
+   of the previous two points' converged harmonics.
 3. **Variance gate**: steady when the per-period spread of the response's
    fundamental, sqrt(var a1 + var b1), is below ``variance_rel`` of its amplitude;
    otherwise wait navg more periods (at most ``max_gate_polls`` times).
-4. **Record**: ``record_s`` rig seconds of full-rate samples; the estimate that
-   ends with them is the point's estimate (non-invasiveness is checked on it
-   again: status ``ok`` or ``not_converged``).
-
-Each point: ``amplitude`` = first-harmonic amplitude of the response
-hypot(a1, b1) (m); ``parameter`` = the forcing amplitude that sustains it = the
-first-harmonic amplitude of the *total* excitation channel (forcing + control;
-here the control alone) (m/s^2); ``frequency`` = the forcing frequency (Hz).
+4. **Record** ``record_s`` rig seconds of full-rate samples and fit the Fourier
+   series (DC + 7 harmonics) of the response, the control and the total excitation
+   to them by least squares against the recorded forcing phase. These are the
+   point's numbers: ``amplitude`` = hypot(a1, b1) of the response (m),
+   ``parameter`` = hypot(a1, b1) of the total excitation, the forcing that
+   sustains the orbit (m/s^2), ``frequency`` = the forcing frequency (Hz).
+   Non-invasiveness is checked again on the fitted control (status ``ok`` or
+   ``not_converged``). Why not the board's estimate: when a forcing period is not a
+   whole number of samples (23 Hz at 10 kHz: 434.8) the board's running correlation
+   biases the fundamental by ~0.1-0.2 %; on the upper branch next to the jump-down
+   fold Phi changes 20-50x faster than A in relative terms, so that bias alone is a
+   2-5 % error in Phi at the measured amplitude. The board's estimates stay in
+   ``fourier`` (mean and variance) and the fitted ones are in ``extra``.
 
 **Step control** (adaptive). The next target is A + h. h grows x1.5 when the
 S-curve, in coordinates normalised by the largest A and Phi seen so far, turns by
 less than ``turn_max_deg``/3 between the last two secants, and halves when it
-turns by more than ``turn_max_deg``; it stays within [step_min, step_max]. When the
-parabola through the last three points has its vertex (a fold) within the next
-step, the step is cut to half the distance to it (not below step_min), so a fold
-is approached in shrinking steps and crossed by a step of about step_min: the
-points next to a fold are close to it, which keeps the slope estimate below honest.
+turns by more than ``turn_max_deg``; it stays within [step_min, step_max]. Two
+fold guards: when the parabola through the last three points has its vertex
+within the next step, the step is cut to half the distance to it; on a falling
+branch the step is limited so that the linear prediction of Phi drops by at most
+``descent_frac`` of Phi (Phi is an amplitude, so the branch must turn before
+zero: this is what finds the sharp jump-down fold).
 
 **End of a sweep**. Folds are confirmed with hysteresis: the jump-up fold once
 Phi has fallen ``fold_margin`` (relative, plus 3 standard errors) below its
 running maximum, the jump-down fold once it has risen as much above the running
-minimum after that. The sweep ends ``beyond_fold`` x the jump-down fold's amplitude
-past it (1.2 x by default), or at ``amplitude_stop`` when that is set (> 0), and in
-any case at ``amplitude_max`` or once Phi exceeds ``phi_max`` (the shaker's range).
-Each confirmed fold is emitted as a ``note`` (its location from the parabola vertex).
+minimum after that. The sweep ends at (1 + ``beyond_fold``) x the jump-down fold's
+amplitude, or at ``amplitude_stop`` when that is set (> 0), and in any case once the
+response amplitude or the sustaining forcing, predicted for the next step, would
+exceed ``amplitude_max`` or ``phi_max``. Each confirmed fold is emitted as
+a ``note`` (located at the vertex of the parabola through the extreme point and
+its neighbours).
 
-**Stability** from branch geometry, point by point: on an S-curve traced with
-amplitude increasing monotonically the middle branch, between the folds, is the
-one where the sustaining forcing falls as the amplitude rises (dPhi/dA < 0), and
-it is unstable (a saddle of the period map: its multiplier crosses +1 at the
-folds); dPhi/dA > 0 is stable. dPhi/dA at a point is the derivative, at that point,
-of the parabola through it and the two previous points of its sweep (the first
-points use the origin, which lies on every S-curve: zero forcing, rest). Its
-standard error (from the excitation's variance) is kept in ``extra`` with
-``label_confident`` = |slope| > 3 sigma; near a fold the sign is decided by
-curvature, not noise, because the step control puts the points close to it.
+**Stability** from branch geometry, point by point: traced with the amplitude
+increasing monotonically, the middle branch between the folds is where the
+sustaining forcing falls as the amplitude rises (dPhi/dA < 0); it is unstable
+(its Floquet multiplier crosses +1 at each fold); dPhi/dA > 0 is stable. At a point,
+dPhi/dA is the derivative of the parabola through it and the two previous points
+of its sweep (the origin, on every S-curve, anchors the first two). Where that
+disagrees with the previous point's label (a fold between them), is within 3
+standard errors of zero, or puts the parabola's vertex within half a step of the
+point (a fold right there, where a parabola over the last steps is least
+trustworthy: the jump-down fold is nearly a corner), a *probe* point is measured at target A - eps (eps
+balancing the parabola's curvature against the noise of Phi) and the label is the
+sign of the secant between the probe and the point, i.e. of dPhi/dA within eps of
+the point. The probe is not a point of the curve (it is in ``extra['probe']``).
+A label can therefore only be wrong for a point within ~eps/2 of a fold.
 
 **Faults.** A ``RigFault`` thrown into a point (the engine has disarmed the rig
 and reset the latch) is noted, the rig is re-armed and the point retried at half
@@ -72,18 +87,24 @@ frequency. ``RigRestarted`` (link lost; the engine re-applied the settings) void
 the point in progress: re-arm and redo it.
 
 **Resume.** Keys are ``f=<Hz, 3 decimals>/A=<target amplitude, m, 6 decimals>``.
-Keys in ``ctx.done`` are not emitted again. The sweep's state (the (A, Phi) history
-its step control, fold bookkeeping and stability slopes need) is rebuilt from
+Keys in ``ctx.done`` are never emitted again. The sweep's state (the (A, Phi)
+history its step control, fold bookkeeping and labels need) is rebuilt from
 ``ctx.previous`` when its entries are mappings with ``key``, ``amplitude`` and
-``parameter``; a done key without such a summary is re-measured, not emitted.
-The sweep then goes on from the largest done amplitude.
+``parameter`` (and ``stable``); a done key without such a summary is re-measured
+but not emitted. The sweep then goes on from the largest done target.
 
-Gains (defaults). The rig's linear stiffness per unit mass is (2 pi 18 Hz)^2 ~
-1.28e4 1/s^2 and the steepest middle branch in 20..26 Hz falls at ~2.5e4 m/s^2 per m;
-kp = 3e4 1/s^2 dominates both, and kd = 100 1/s (closed-loop damping ~ 0.25 at
-~33 Hz) damps the closed loop within a forcing period or two. At the 3rd harmonic
-the closed loop passes ~30 % of a target change, so Picard contracts its error by
-~0.3 per iteration (higher gains would slow it). See ``DEFAULTS``.
+**Gains** (defaults kp = 1e4 1/s^2, kd = 50 1/s). Two requirements, checked with
+a one-harmonic model of this rig (linear stiffness per unit mass (2 pi 18 Hz)^2 ~
+1.28e4 1/s^2, hardening) over 20-26 Hz and up to 1.2x the jump-down fold:
+(a) the controlled system's response amplitude must rise monotonically with the
+target (no fold of the closed loop, so the middle branch is held): any kp >= 0
+with kd >= 50 does, and kp > w^2 - k alone would;
+(b) Picard contracts at harmonic k by |C/(C + P^-1)|(k w) (P the plant, C = kp +
+i k w kd): above the plant's resonance a large kp puts the *closed-loop*
+resonance on 2w and the iteration diverges (kp = 3e4, kd = 100 gives 1.2-1.35 at 2w
+on the upper branch; measured: the DC and 2nd harmonic run away near the jump-down
+fold). kp = 1e4, kd = 50 gives 0.46 at 2w, 0.2 at 3w, 0.43 at DC, with sensor-noise
+control of ~0.1 m/s^2 rms (kd x 2 mm/s).
 """
 
 from __future__ import annotations
@@ -99,33 +120,37 @@ from ..engine import amplitude
 from ..messages import Arm, Configure, Disarm, Emit, RigFault, RigRestarted, Settle
 
 NH = 7                 # harmonics in the board's Fourier series
-STABILITY_METHOD = ("branch geometry: sign of dPhi/dA at the point (parabola through it and "
-                    "the two previous points of the amplitude sweep; the origin anchors the "
-                    "first); dPhi/dA < 0 = middle branch between the folds = unstable")
+STABILITY_METHOD = ("branch geometry: sign of dPhi/dA at the point along the monotonic amplitude "
+                    "sweep (parabola through it and the two previous points; near a fold the "
+                    "secant to a probe point just below it); dPhi/dA < 0 = middle branch "
+                    "between the folds = unstable")
 
 DEFAULTS = {
     # controller (board settings)
-    "kp": 3.0e4,                 # proportional gain, (m/s^2)/m
-    "kd": 100.0,                 # derivative gain, (m/s^2)/(m/s)
+    "kp": 1.0e4,                 # proportional gain, (m/s^2)/m
+    "kd": 50.0,                  # derivative gain, (m/s^2)/(m/s)
     "filter_hz": 0.0,            # error low-pass on the board, 0 = off
     "navg": 8,                   # periods in the board's running mean/variance
     "transient_periods": 3,      # periods dropped after a new target
     "clamp": 100.0,              # output clamp, m/s^2 (the shaker's limit)
     "trip": 0.016,               # amplitude trip on |x|, m
-    "forcing_amplitude": 0.0,    # host forcing (0: the controller provides all of it)
+    "forcing_amplitude": 0.0,    # host forcing, m/s^2 (0: the controller provides all of it)
     # amplitude sweep (m)
     "amplitude_start": 3.0e-4,
     "amplitude_step": 3.0e-4,    # first step
     "step_min": 4.0e-5,
     "step_max": 6.0e-4,
     "turn_max_deg": 20.0,
+    "descent_frac": 0.4,
     "amplitude_stop": 0.0,       # > 0: end every sweep here instead of past the folds
-    "amplitude_max": 0.012,
+    "amplitude_max": 0.012,      # largest response amplitude (m)
     "beyond_fold": 0.2,          # go on to (1 + beyond_fold) x the jump-down fold amplitude
     "phi_max": 80.0,             # end a sweep once the sustaining forcing exceeds this, m/s^2
     "fold_margin": 0.02,
+    "probe_min": 5.0e-6,         # smallest probe offset, m
     # convergence
     "max_picard": 8,
+    "picard_from_control": True,
     "noninvasive_tol": 0.005,
     "noninvasive_sigmas": 3.0,
     "variance_rel": 0.004,
@@ -137,12 +162,13 @@ DEFAULTS = {
     "max_restarts": 3,
 }
 
+_KEY = re.compile(r"^f=([0-9.]+)/A=([0-9.]+)$")
+TARGET_MAX = 0.0195   # target coefficients are limited to +-0.02 m by the register map
+HIGHER = [0] + list(range(2, NH + 1)) + list(range(NH + 2, 2 * NH + 1))   # DC, harmonics 2..7
+
 
 def point_key(f: float, A: float) -> str:
     return f"f={f:.3f}/A={A:.6f}"
-
-
-_KEY = re.compile(r"^f=([0-9.]+)/A=([0-9.]+)$")
 
 
 def _zero_targets() -> dict:
@@ -153,47 +179,114 @@ def _zero_targets() -> dict:
     return t
 
 
-def _harm_index():
-    """Indices of DC and harmonics 2..7 (a and b) in the 15-coefficient vector."""
-    return [0] + list(range(2, NH + 1)) + list(range(NH + 2, 2 * NH + 1))
-
-
-HIGHER = _harm_index()
-
-
-def invasiveness(est, navg: int) -> tuple[float, float, float]:
-    """(residual, fundamental, standard error of the residual) of the control:
-    residual = norm of its DC and harmonics 2..7, fundamental = hypot(c1, s1)."""
-    c = np.asarray(est.fourier["control"]["mean"], dtype=float)
-    v = np.asarray(est.fourier["control"]["var"], dtype=float)
+# ------------------------------------------------------------------------------ numbers
+def invasiveness(coef, var=None, navg: int = 1) -> tuple[float, float, float]:
+    """(residual, fundamental, standard error of the residual) of a control's 15
+    coefficients: residual = norm of its DC and harmonics 2..7, fundamental =
+    hypot(c1, s1); the standard error from the per-period variances (0 without)."""
+    c = np.asarray(coef, dtype=float)
     resid = float(np.sqrt(np.sum(c[HIGHER] ** 2)))
     fund = float(math.hypot(c[1], c[1 + NH]))
-    se = float(np.sqrt(max(np.sum(np.maximum(v[HIGHER], 0.0)), 0.0) / max(navg, 1)))
+    se = 0.0
+    if var is not None:
+        v = np.maximum(np.asarray(var, dtype=float)[HIGHER], 0.0)
+        se = float(np.sqrt(np.sum(v) / max(navg, 1)))
     return resid, fund, se
 
 
-def forcing_of(est, navg: int) -> tuple[float, float]:
-    """(Phi, its standard error): first-harmonic amplitude of the total excitation."""
-    e = np.asarray(est.fourier["excitation"]["mean"], dtype=float)
-    v = np.asarray(est.fourier["excitation"]["var"], dtype=float)
+def forcing_of(coef, var=None, navg: int = 1) -> tuple[float, float]:
+    """(Phi, its standard error): the first-harmonic amplitude of an excitation."""
+    e = np.asarray(coef, dtype=float)
     phi = float(math.hypot(e[1], e[1 + NH]))
-    if phi <= 0:
+    if var is None or phi <= 0:
         return phi, 0.0
-    var = (e[1] ** 2 * max(v[1], 0.0) + e[1 + NH] ** 2 * max(v[1 + NH], 0.0)) / phi ** 2
-    return phi, float(math.sqrt(var / max(navg, 1)))
+    v = np.asarray(var, dtype=float)
+    s2 = (e[1] ** 2 * max(v[1], 0.0) + e[1 + NH] ** 2 * max(v[1 + NH], 0.0)) / phi ** 2
+    return phi, float(math.sqrt(s2 / max(navg, 1)))
+
+
+def record_fourier(samples: dict | None, forcing_amplitude: float) -> dict | None:
+    """Least-squares Fourier series (a0, a1..a7, b1..b7) over the recorded forcing
+    phase of the response, the control and the total excitation (forcing
+    ``parameter`` cos(phase) + control: exact for the amplitude of its fundamental
+    when the host forcing is 0, and without actuator latency otherwise). None when
+    there are too few samples."""
+    if not samples or samples.get("x") is None or len(samples["x"]) < 8 * (2 * NH + 1):
+        return None
+    th = np.asarray(samples["phase"], dtype=float)
+    B = np.empty((th.size, 2 * NH + 1))
+    B[:, 0] = 1.0
+    for k in range(1, NH + 1):
+        B[:, k] = np.cos(k * th)
+        B[:, k + NH] = np.sin(k * th)
+    u = np.asarray(samples["control"], dtype=float)
+    par = np.asarray(samples.get("parameter", np.zeros_like(u)), dtype=float)
+    exc = u + (par * np.cos(th) if forcing_amplitude != 0 else 0.0)
+    Y = np.column_stack([np.asarray(samples["x"], dtype=float), u, exc])
+    coef, *_ = np.linalg.lstsq(B, Y, rcond=None)
+    resid = Y - B @ coef
+    # standard errors of the coefficients from the fit residual (white-noise model)
+    dof = max(th.size - B.shape[1], 1)
+    s2 = np.sum(resid ** 2, axis=0) / dof
+    cov_diag = np.diag(np.linalg.inv(B.T @ B))
+    out = {}
+    for j, ch in enumerate(("response", "control", "excitation")):
+        out[ch] = {"mean": coef[:, j], "var_of_mean": s2[j] * cov_diag}
+    out["samples"] = int(th.size)
+    return out
+
+
+def controller_response(k: int, f: float, o: dict) -> complex:
+    """The board's control law at harmonic k of f: u_k = C (target_k - x_k) for the
+    complex coefficient a - i b; PD through the optional one-pole error filter
+    (discrete, as the board runs it at `sample_rate`)."""
+    w = 2 * math.pi * f * k
+    C = o["kp"] + 1j * w * o["kd"]
+    fc = o["filter_hz"]
+    if fc > 0:
+        dt = 1.0 / o["sample_rate"]
+        a = 1.0 - math.exp(-2 * math.pi * fc * dt)
+        C *= a / (1.0 - (1.0 - a) * complex(math.cos(w * dt), -math.sin(w * dt)))
+    return C
+
+
+def picard_update(T: np.ndarray, est, f: float, o: dict) -> np.ndarray:
+    """One Picard step: DC and harmonics 2..7 of the target <- the response's.
+
+    With ``picard_from_control`` (default) the response harmonics are read through
+    the controller: x_k = T_k - u_k / C(k w), u_k the control channel's estimate.
+    That is the same quantity as the response channel's x_k, but the board's
+    estimator leaks ~0.05 % of a signal's fundamental into each harmonic when a
+    forcing period is not a whole number of samples; put into the target and
+    multiplied by the controller's gain at the high harmonics (|C(7w)| ~ 5e4 1/s^2)
+    that leak alone is a control residual of several per cent of the forcing at the
+    jump-down fold. Through the control channel the leak is divided by |C| instead.
+    """
+    T = T.copy()
+    r = np.asarray(est.fourier["response"]["mean"], dtype=float)
+    if not o["picard_from_control"]:
+        T[HIGHER] = r[HIGHER]
+        return T
+    u = np.asarray(est.fourier["control"]["mean"], dtype=float)
+    T[0] = T[0] - u[0] / o["kp"] if o["kp"] != 0 else r[0]   # kp = 0: DC is not controlled
+    for k in range(2, NH + 1):
+        zx = complex(T[k], -T[k + NH]) - complex(u[k], -u[k + NH]) / controller_response(k, f, o)
+        T[k], T[k + NH] = zx.real, -zx.imag
+    return T
 
 
 def _parabola(pts):
     """Coefficients (c2, c1, c0) of the parabola through three (A, Phi) points."""
-    (x0, y0), (x1, y1), (x2, y2) = pts
-    return np.polyfit([x0, x1, x2], [y0, y1, y2], 2)
+    xs = [p[0] for p in pts]
+    ys = [p[1] for p in pts]
+    return np.polyfit(xs, ys, 2)
 
 
 def slope_at_last(pts, sig) -> tuple[float, float]:
     """dPhi/dA at the last of (up to) three points from the parabola through them
     (the secant for two), and its standard error from the points' errors `sig`."""
     if len(pts) == 2:
-        (x0, y0), (x1, y1) = pts
+        (x0, _), (x1, _) = pts
         w = np.array([-1.0, 1.0]) / (x1 - x0)
     else:
         (x0, _), (x1, _), (x2, _) = pts
@@ -204,30 +297,30 @@ def slope_at_last(pts, sig) -> tuple[float, float]:
     return float(w @ y), float(np.sqrt(np.sum((w * np.asarray(sig)) ** 2)))
 
 
+# ------------------------------------------------------------------------------ the sweep
 class _Sweep:
     """The S-curve at one frequency: history, step control, fold bookkeeping."""
 
     def __init__(self, f: float, o: dict):
         self.f = float(f)
         self.o = o
-        self.pts: list[tuple[float, float]] = [(0.0, 0.0)]   # (A, Phi), origin first
+        self.pts: list[tuple[float, float]] = [(0.0, 0.0)]   # (A, Phi), the origin first
         self.sig: list[float] = [0.0]
-        self.targets_done: list[float] = []                  # target amplitudes measured
-        self.harm: list[tuple[float, np.ndarray]] = []       # (A target, converged 15-vector)
+        self.labels: list[bool] = []
+        self.targets_done: list[float] = []
+        self.harm: list[tuple[float, np.ndarray]] = []       # (target, converged 15-vector)
         self.h = float(o["amplitude_step"])
         self.folds: list[dict] = []
         self.phase = 0                                       # folds confirmed so far
         self.ext_i = 0                                       # index of the running extreme
 
-    # ---------------------------------------------------------------- targets
     def predict_harmonics(self, A: float) -> np.ndarray:
         if not self.harm:
             return np.zeros(2 * NH + 1)
         if len(self.harm) == 1 or self.harm[-1][0] == self.harm[-2][0]:
             return self.harm[-1][1].copy()
         (A0, T0), (A1, T1) = self.harm[-2], self.harm[-1]
-        w = (A - A1) / (A1 - A0)
-        w = max(min(w, 1.5), -1.0)              # do not extrapolate wildly
+        w = max(min((A - A1) / (A1 - A0), 1.5), -1.0)       # no wild extrapolation
         return T1 + w * (T1 - T0)
 
     def settings(self, A: float, T: np.ndarray) -> dict:
@@ -237,14 +330,15 @@ class _Sweep:
             t[f"target_b{k}"] = float(T[k + NH])
         return t
 
-    # ---------------------------------------------------------------- bookkeeping
     def add(self, A_target: float, A: float, phi: float, sphi: float, T: np.ndarray):
-        """Record a measured point; returns (slope, slope_se) at it."""
+        """Record a measured point; returns (dPhi/dA, its se, parabola curvature c2)."""
         self.pts.append((A, phi))
         self.sig.append(sphi)
         self.targets_done.append(A_target)
         self.harm.append((A_target, T.copy()))
-        return slope_at_last(self.pts[-3:], self.sig[-3:])
+        slope, se = slope_at_last(self.pts[-3:], self.sig[-3:])
+        c2 = float(_parabola(self.pts[-3:])[0]) if len(self.pts) >= 3 else 0.0
+        return slope, se, c2
 
     def update_folds(self):
         """Confirm folds with hysteresis; returns a new fold's record or None."""
@@ -253,19 +347,18 @@ class _Sweep:
         i = len(self.pts) - 1
         phi_i = self.pts[i][1]
         ext = self.pts[self.ext_i][1]
-        margin = self.o["fold_margin"] * max(ext, 1e-12) + 3.0 * max(self.sig[i], self.sig[self.ext_i])
+        margin = (self.o["fold_margin"] * max(ext, 1e-12)
+                  + 3.0 * max(self.sig[i], self.sig[self.ext_i]))
         if self.phase == 0:
             if phi_i >= ext:
                 self.ext_i = i
-                return None
-            if phi_i < ext - margin:
-                return self._confirm(kind="jump-up")
+            elif phi_i < ext - margin:
+                return self._confirm("jump-up")
         else:
             if phi_i <= ext:
                 self.ext_i = i
-                return None
-            if phi_i > ext + margin:
-                return self._confirm(kind="jump-down")
+            elif phi_i > ext + margin:
+                return self._confirm("jump-down")
         return None
 
     def _confirm(self, kind: str) -> dict:
@@ -277,7 +370,8 @@ class _Sweep:
                 Av = -c1 / (2 * c2)
                 if self.pts[j - 1][0] <= Av <= self.pts[j + 1][0]:
                     A_f, phi_f = float(Av), float(np.polyval([c2, c1, c0], Av))
-        fold = {"kind": kind, "amplitude": A_f, "parameter": phi_f, "frequency": self.f}
+        fold = {"kind": kind, "amplitude": float(A_f), "parameter": float(phi_f),
+                "frequency": self.f}
         self.folds.append(fold)
         self.phase += 1
         self.ext_i = len(self.pts) - 1
@@ -286,29 +380,42 @@ class _Sweep:
     def finished(self, A_next: float) -> str:
         """Why the sweep ends before measuring at A_next ('' to go on)."""
         o = self.o
-        A_last = self.targets_done[-1] if self.targets_done else 0.0
-        if len(self.pts) > 1 and self.pts[-1][1] > o["phi_max"]:
-            return f"forcing {self.pts[-1][1]:.1f} m/s^2 above phi_max"
+        phi_next = self.pts[-1][1]
+        if len(self.pts) >= 3 and self.targets_done[-1] > self.targets_done[-2]:
+            rate = (self.pts[-1][1] - self.pts[-2][1]) / (self.targets_done[-1] - self.targets_done[-2])
+            phi_next += max(rate, 0.0) * (A_next - self.targets_done[-1])
+        if len(self.pts) > 1 and phi_next > o["phi_max"]:
+            return f"forcing would exceed phi_max ({phi_next:.1f} m/s^2 predicted)"
         if o["amplitude_stop"] > 0:
             if A_next > o["amplitude_stop"] + 1e-9:
                 return "amplitude_stop reached"
-        elif self.phase >= 2 and A_last >= (1 + o["beyond_fold"]) * self.folds[1]["amplitude"]:
-            return "past both folds"
-        if A_next > o["amplitude_max"] + 1e-9:
+        elif self.phase >= 2:
+            # in measured amplitude (the target differs from it by |forcing / C(w)|)
+            if self.pts[-1][0] >= (1 + o["beyond_fold"]) * self.folds[1]["amplitude"]:
+                return "past both folds"
+        # amplitude_max bounds the response; the target runs ahead of it by
+        # |forcing / C(w)| (millimetres on the upper branch), so predict the response
+        A_meas = self.pts[-1][0]
+        if len(self.pts) >= 3 and self.targets_done[-1] > self.targets_done[-2]:
+            gain = (self.pts[-1][0] - self.pts[-2][0]) / (self.targets_done[-1] - self.targets_done[-2])
+            A_meas += max(gain, 0.0) * (A_next - self.targets_done[-1])
+        if A_meas > o["amplitude_max"] + 1e-9:
             return "amplitude_max reached"
+        if A_next > TARGET_MAX:
+            return "target at the register's limit"
         return ""
 
     def next_step(self) -> float:
-        """Adapt h after a point (turning angle, fold approach); returns it."""
+        """Adapt h after a point (turning angle, fold guards); returns it."""
         o = self.o
         h = self.h
         if len(self.pts) >= 3:
-            Aref = max(p[0] for p in self.pts)
+            Aref = max(p[0] for p in self.pts) or 1.0
             Pref = max(p[1] for p in self.pts) or 1.0
             (a0, p0), (a1, p1), (a2, p2) = [(a / Aref, p / Pref) for a, p in self.pts[-3:]]
             v1 = np.array([a1 - a0, p1 - p0])
             v2 = np.array([a2 - a1, p2 - p1])
-            n = np.linalg.norm(v1) * np.linalg.norm(v2)
+            n = float(np.linalg.norm(v1) * np.linalg.norm(v2))
             if n > 0:
                 ang = math.degrees(math.acos(max(-1.0, min(1.0, float(v1 @ v2) / n))))
                 if ang > o["turn_max_deg"]:
@@ -316,45 +423,54 @@ class _Sweep:
                 elif ang < o["turn_max_deg"] / 3:
                     h *= 1.5
         h = min(max(h, o["step_min"]), o["step_max"])
-        if len(self.pts) >= 4 and self.phase < 2:
-            c2, c1, _ = _parabola(self.pts[-3:])
-            A_i = self.pts[-1][0]
-            if c2 != 0:
-                Av = -c1 / (2 * c2)
-                if A_i < Av < A_i + h:            # a fold ahead within the step: approach it
-                    h = max(o["step_min"], 0.5 * (Av - A_i))
+        if len(self.pts) >= 3 and self.phase < 2:
+            (A1, P1), (A2, P2) = self.pts[-2:]
+            # target and measured amplitude differ: scale the guards to target units
+            ratio = (self.targets_done[-1] / A2) if A2 > 0 else 1.0
+            sec = (P2 - P1) / (A2 - A1) if A2 != A1 else 0.0
+            if sec < 0:                                 # falling: Phi must turn before 0
+                h = min(h, max(o["step_min"], o["descent_frac"] * P2 / -sec * ratio))
+            if len(self.pts) >= 4:
+                c2, c1, _ = _parabola(self.pts[-3:])
+                if c2 != 0:
+                    Av = -c1 / (2 * c2)
+                    if A2 < Av < A2 + h / ratio:        # a fold ahead within the step
+                        h = max(o["step_min"], 0.5 * (Av - A2) * ratio)
         self.h = h
         return h
 
 
+# ------------------------------------------------------------------------------ the plan
 def oscillator_plan(config: dict):
     """Build the plan for an oscillator campaign from its (validated) config."""
-    o = {**DEFAULTS, **config.get("cbc", {})}
-    o["navg"] = int(o["navg"])
+    o0 = {**DEFAULTS, **config.get("cbc", {})}
+    o0["navg"] = int(o0["navg"])
     freqs = [float(f) for f in config["frequencies"]]
 
     def plan(ctx):
-        state = {"index": len(ctx.previous)}
+        o = {**o0, "sample_rate": float((ctx.identity or {}).get("sample_rate", 10000.0))}
+        state = {"index": len(ctx.previous or [])}
         summaries = _summaries(ctx)
         yield Configure({"kp": o["kp"], "kd": o["kd"], "navg": o["navg"], "phase_mode": 0,
                          "clamp": o["clamp"], "trip": o["trip"], "filter_hz": o["filter_hz"],
                          "forcing_amplitude": o["forcing_amplitude"], "frequency": freqs[0],
                          **_zero_targets()})
         for f in freqs:
-            s = _Sweep(f, o)
-            yield from _run_sweep(s, o, ctx, summaries, state)
+            yield from _run_sweep(_Sweep(f, o), o, ctx, summaries, state)
         yield Disarm()
 
     return plan
 
 
 def _summaries(ctx) -> dict:
-    """key -> (amplitude, parameter) from ctx.previous, where it carries them."""
+    """key -> (amplitude, parameter, stable or None) from ctx.previous, where given."""
     out = {}
     for p in ctx.previous or []:
         if isinstance(p, Mapping) and {"key", "amplitude", "parameter"} <= set(p):
             try:
-                out[str(p["key"])] = (float(p["amplitude"]), float(p["parameter"]))
+                st = p.get("stable")
+                out[str(p["key"])] = (float(p["amplitude"]), float(p["parameter"]),
+                                      None if st is None else bool(st))
             except (TypeError, ValueError):
                 continue
     return out
@@ -362,7 +478,7 @@ def _summaries(ctx) -> dict:
 
 def _done_targets(ctx, f: float) -> list[float]:
     out = []
-    for k in ctx.done:
+    for k in ctx.done or ():
         m = _KEY.match(str(k))
         if m and abs(float(m.group(1)) - f) < 5e-4:
             out.append(float(m.group(2)))
@@ -374,16 +490,18 @@ def _run_sweep(s: _Sweep, o: dict, ctx, summaries: dict, state: dict):
     yield Configure({"frequency": s.f, "forcing_amplitude": o["forcing_amplitude"],
                      "phase_mode": 0, **_zero_targets()})
     yield Arm()
-    replay = _done_targets(ctx, s.f)      # already in the file: rebuild the state, emit nothing
+    done = ctx.done or set()
+    replay = _done_targets(ctx, s.f)      # already in the file: rebuild the state only
     A = replay.pop(0) if replay else round(o["amplitude_start"], 6)
     prev_A = None                         # target of the last measured point
     skips = 0
     why = ""
     while True:
         key = point_key(s.f, A)
-        if key in summaries and key in ctx.done:
-            amp, phi = summaries[key]
-            s.add(A, amp, phi, 0.0, s.predict_harmonics(A))
+        if key in summaries and key in done:
+            amp, phi, st = summaries[key]
+            slope, _, _ = s.add(A, amp, phi, 0.0, s.predict_harmonics(A))
+            s.labels.append(st if st is not None else slope > 0)
             s.update_folds()
             prev_A = A
         else:
@@ -403,11 +521,20 @@ def _run_sweep(s: _Sweep, o: dict, ctx, summaries: dict, state: dict):
                 skips = 0
                 A = res["target"]             # a fault may have moved it
                 key = point_key(s.f, A)
-                slope = s.add(A, res["amplitude"], res["parameter"], res["parameter_se"],
-                              res["harmonics"])
+                slope, se, c2 = s.add(A, res["amplitude"], res["parameter"],
+                                      res["parameter_se"], res["harmonics"])
+                label = {"slope": slope, "slope_se": se, "method": "parabola", "probe": None}
+                prev_label = s.labels[-1] if s.labels else True   # the origin: stable rest
+                spacing = s.pts[-1][0] - s.pts[-2][0]
+                near_vertex = c2 != 0 and abs(slope / (2 * c2)) < 0.5 * spacing
+                if (slope > 0) != prev_label or abs(slope) <= 3 * se or near_vertex:
+                    probe = yield from _probe(s, o, res, c2)
+                    if probe is not None:
+                        label.update(probe)
+                s.labels.append(label["slope"] > 0)
                 fold = s.update_folds()
-                if key not in ctx.done:
-                    yield Emit("point", _point_doc(state["index"], key, s, res, o, slope))
+                if key not in done:
+                    yield Emit("point", _point_doc(state["index"], key, s, res, o, label))
                     state["index"] += 1
                 if fold is not None:
                     yield Emit("note", {"text": f"f = {s.f:g} Hz: {fold['kind']} fold near "
@@ -418,13 +545,41 @@ def _run_sweep(s: _Sweep, o: dict, ctx, summaries: dict, state: dict):
             A = replay.pop(0)
             continue
         h = s.next_step()
-        A = round(prev_A + h, 6) if prev_A is not None else round(A + h, 6)
+        A = round((prev_A if prev_A is not None else A) + h, 6)
         why = s.finished(A)
         if why:
             break
     yield Emit("note", {"text": f"f = {s.f:g} Hz: sweep ended ({why}); "
                                 f"{len(s.pts) - 1} points, {len(s.folds)} folds",
                         "folds": s.folds})
+
+
+def _probe(s: _Sweep, o: dict, res: dict, c2: float):
+    """Generator: the local slope just below a point whose label is in doubt.
+    Returns {"slope", "slope_se", "method", "probe"} or None if the probe failed."""
+    A = res["target"]
+    sig = max(res["parameter_se"], 1e-12)
+    prev = s.targets_done[-2] if len(s.targets_done) >= 2 else 0.0
+    eps = math.sqrt(2 * math.sqrt(2) * sig / max(abs(2 * c2), 1e-300)) if c2 else 0.5 * (A - prev)
+    eps = min(max(eps, o["probe_min"]), 0.5 * (A - prev))
+    Ap = round(A - eps, 7)
+    if Ap <= prev or Ap <= 0:
+        return None
+    try:
+        pr = yield from _measure(s, o, Ap, start=res["harmonics"])
+    except (RigFault, RigRestarted) as exc:
+        yield Emit("note", {"text": f"f = {s.f:g} Hz: probe at {Ap * 1e3:.4f} mm lost ({exc})"})
+        yield from _rearm()
+        return None
+    dA = res["amplitude"] - pr["amplitude"]
+    if dA <= 0:
+        return None
+    slope = (res["parameter"] - pr["parameter"]) / dA
+    se = math.hypot(res["parameter_se"], pr["parameter_se"]) / dA
+    return {"slope": slope, "slope_se": se, "method": "probe secant",
+            "probe": {"target": Ap, "amplitude": pr["amplitude"], "parameter": pr["parameter"],
+                      "parameter_se": pr["parameter_se"], "noninvasive": pr["noninvasive"],
+                      "rig_seconds": pr["rig_seconds"]}}
 
 
 def _attempt(s: _Sweep, o: dict, A: float, prev_A):
@@ -434,8 +589,7 @@ def _attempt(s: _Sweep, o: dict, A: float, prev_A):
     restarts = 0
     while True:
         try:
-            res = yield from _measure(s, o, A)
-            return res
+            return (yield from _measure(s, o, A))
         except RigRestarted:
             restarts += 1
             yield Emit("note", {"text": f"f = {s.f:g} Hz, A = {A * 1e3:.3f} mm: link lost; "
@@ -447,7 +601,7 @@ def _attempt(s: _Sweep, o: dict, A: float, prev_A):
             faults += 1
             base = prev_A if prev_A is not None else 0.0
             new_A = round(base + 0.5 * (A - base), 6)
-            if faults > o["max_fault_retries"] or (new_A - base) < o["step_min"] or prev_A is None:
+            if prev_A is None or faults > o["max_fault_retries"] or new_A - base < o["step_min"]:
                 yield Emit("note", {"text": f"f = {s.f:g} Hz: {exc} at target A = "
                                             f"{A * 1e3:.3f} mm; target skipped"})
                 yield from _rearm()
@@ -470,46 +624,53 @@ def _rearm():
     yield Arm()
 
 
-def _measure(s: _Sweep, o: dict, A: float):
+def _measure(s: _Sweep, o: dict, A: float, start=None):
     """Generator: Picard iteration, variance gate and record at target amplitude A."""
     navg = o["navg"]
     t_wall = time.time()
-    T = s.predict_harmonics(A)
+    T = s.predict_harmonics(A) if start is None else np.array(start, dtype=float)
     rows = []
     est = None
-    ok_inv = False
-    for it in range(int(o["max_picard"])):
+    for _ in range(int(o["max_picard"])):
         yield Configure(s.settings(A, T))
         est = yield Settle(periods=int(o["transient_periods"]) + navg)
-        resid, fund, se = invasiveness(est, navg)
-        ok_inv = resid <= max(o["noninvasive_tol"] * fund, o["noninvasive_sigmas"] * se)
+        resid, fund, se = invasiveness(est.fourier["control"]["mean"],
+                                       est.fourier["control"]["var"], navg)
         rows.append(_row(len(rows), "picard", A, est, resid, fund, se, navg))
-        if ok_inv:
+        if resid <= max(o["noninvasive_tol"] * fund, o["noninvasive_sigmas"] * se):
             break
-        r = np.asarray(est.fourier["response"]["mean"], dtype=float)
-        T = T.copy()
-        T[HIGHER] = r[HIGHER]
-    gate_ok = False
-    for _ in range(int(o["max_gate_polls"]) + 1):
-        gate_ok = _gate(est, o)
+        T = picard_update(T, est, s.f, o)
+    gate_ok = _gate(est, o)
+    for _ in range(int(o["max_gate_polls"])):
         if gate_ok:
             break
         yield Configure(s.settings(A, T))
         est = yield Settle(periods=navg)
-        resid, fund, se = invasiveness(est, navg)
+        resid, fund, se = invasiveness(est.fourier["control"]["mean"],
+                                       est.fourier["control"]["var"], navg)
         rows.append(_row(len(rows), "gate", A, est, resid, fund, se, navg))
-    # the record: the estimate read after it covers its last navg periods
-    if o["record_s"] > 0:
+        gate_ok = _gate(est, o)
+    if o["record_s"] > 0:            # the estimate read after it covers its last navg periods
         est = yield Settle(periods=0, record_s=float(o["record_s"]))
-    resid, fund, se = invasiveness(est, navg)
-    ok_inv = resid <= max(o["noninvasive_tol"] * fund, o["noninvasive_sigmas"] * se)
-    gate_ok = _gate(est, o)
+        gate_ok = _gate(est, o)
+    resid, fund, se = invasiveness(est.fourier["control"]["mean"],
+                                   est.fourier["control"]["var"], navg)
     rows.append(_row(len(rows), "record", A, est, resid, fund, se, navg))
-    phi, sphi = forcing_of(est, navg)
-    return {"target": A, "estimate": est, "amplitude": amplitude(est.fourier["response"]["mean"]),
-            "parameter": phi, "parameter_se": sphi, "harmonics": T, "noninvasive": ok_inv,
+    phi, sphi = forcing_of(est.fourier["excitation"]["mean"], est.fourier["excitation"]["var"], navg)
+    amp = amplitude(est.fourier["response"]["mean"])
+    fit = record_fourier(est.samples, o["forcing_amplitude"])
+    source = "board"
+    if fit is not None:
+        source = "record"
+        amp = amplitude(fit["response"]["mean"])
+        phi, _ = forcing_of(fit["excitation"]["mean"])
+        resid, fund, _ = invasiveness(fit["control"]["mean"])
+    noninvasive = resid <= max(o["noninvasive_tol"] * fund, o["noninvasive_sigmas"] * se)
+    return {"target": A, "estimate": est, "fit": fit, "source": source, "amplitude": amp,
+            "parameter": phi, "parameter_se": sphi, "harmonics": T, "noninvasive": noninvasive,
             "gate": gate_ok, "residual": resid, "fundamental": fund, "residual_se": se,
             "picard": sum(1 for r in rows if r["stage"] == "picard"), "history": rows,
+            "rig_seconds": float(sum(r["waited_s"] for r in rows)),
             "wall_s": time.time() - t_wall}
 
 
@@ -521,7 +682,7 @@ def _gate(est, o) -> bool:
 
 
 def _row(i, stage, A, est, resid, fund, se, navg) -> dict:
-    phi, _ = forcing_of(est, navg)
+    phi, _ = forcing_of(est.fourier["excitation"]["mean"])
     return {"iteration": i, "stage": stage, "target_amplitude": A,
             "amplitude": amplitude(est.fourier["response"]["mean"]), "parameter": phi,
             "control_residual": resid, "control_fundamental": fund, "residual_se": se,
@@ -529,28 +690,38 @@ def _row(i, stage, A, est, resid, fund, se, navg) -> dict:
             "frequency": est.frequency, "rig_time": est.rig_time, "waited_s": est.waited_s}
 
 
-def _point_doc(index, key, s: _Sweep, res: dict, o: dict, slope) -> dict:
+def _point_doc(index, key, s: _Sweep, res: dict, o: dict, label: dict) -> dict:
     est = res["estimate"]
     resp = np.asarray(est.fourier["response"]["mean"])
-    exc = np.asarray(est.fourier["excitation"]["mean"])
     ts = est.samples or {}
-    dphi, dphi_se = slope
-    stable = bool(dphi > 0)
-    extra = {"target_amplitude": res["target"], "dc": float(resp[0]),
-             "picard_iterations": res["picard"], "evaluations": len(res["history"]),
-             "control_residual": res["residual"], "control_fundamental": res["fundamental"],
-             "invasiveness": res["residual"] / res["fundamental"] if res["fundamental"] > 0 else float("inf"),
-             "control_residual_se": res["residual_se"], "noninvasive": bool(res["noninvasive"]),
-             "variance_gate": bool(res["gate"]), "parameter_se": res["parameter_se"],
-             "dphi_da": dphi, "dphi_da_se": dphi_se,
-             "label_confident": bool(abs(dphi) > 3 * dphi_se),
-             "forcing_phase": float(math.atan2(exc[1 + NH], exc[1])),
-             "response_phase": float(math.atan2(resp[1 + NH], resp[1])),
-             "folds_passed": s.phase, "step": s.h,
-             "rig_seconds": float(sum(r["waited_s"] for r in res["history"]))}
+    fit = res["fit"]
+    coef = fit["response"]["mean"] if fit else resp
+    exc = fit["excitation"]["mean"] if fit else np.asarray(est.fourier["excitation"]["mean"])
+    extra = {
+        "target_amplitude": res["target"], "dc": float(coef[0]),
+        "picard_iterations": res["picard"], "evaluations": len(res["history"]),
+        "control_residual": res["residual"], "control_fundamental": res["fundamental"],
+        "invasiveness": res["residual"] / res["fundamental"] if res["fundamental"] > 0 else float("inf"),
+        "control_residual_se": res["residual_se"], "noninvasive": bool(res["noninvasive"]),
+        "variance_gate": bool(res["gate"]), "parameter_se": res["parameter_se"],
+        "values_from": res["source"],
+        "board_amplitude": amplitude(resp),
+        "board_parameter": forcing_of(est.fourier["excitation"]["mean"])[0],
+        "dphi_da": label["slope"], "dphi_da_se": label["slope_se"],
+        "stability_from": label["method"], "label_confident": bool(abs(label["slope"]) > 3 * label["slope_se"]),
+        "forcing_phase": float(math.atan2(exc[1 + NH], exc[1])),
+        "response_phase": float(math.atan2(coef[1 + NH], coef[1])),
+        "folds_passed": s.phase, "next_step": s.h, "rig_seconds": res["rig_seconds"],
+    }
+    if label["probe"] is not None:
+        extra["probe"] = label["probe"]
+    if fit is not None:
+        extra["record_fourier"] = {ch: [float(v) for v in fit[ch]["mean"]]
+                                   for ch in ("response", "control", "excitation")}
+        extra["record_samples"] = fit["samples"]
     if ts.get("x") is not None and len(ts["x"]):
         extra["control_rms"] = float(np.sqrt(np.mean(np.asarray(ts["control"]) ** 2)))
-        extra["response_rms"] = float(np.sqrt(np.mean((np.asarray(ts["x"]) - resp[0]) ** 2)))
+        extra["response_rms"] = float(np.sqrt(np.mean((np.asarray(ts["x"]) - coef[0]) ** 2)))
         extra["gap_records"] = int(ts.get("gap_records", 0))
     timeseries = {k: np.asarray(v) for k, v in ts.items() if k != "gap_records"}
     settings = {"kp": o["kp"], "kd": o["kd"], "filter_hz": o["filter_hz"], "navg": o["navg"],
@@ -559,7 +730,7 @@ def _point_doc(index, key, s: _Sweep, res: dict, o: dict, slope) -> dict:
     return {
         "index": index, "key": key, "rig": "oscillator", "parameter": float(res["parameter"]),
         "parameter_name": "forcing_amplitude", "frequency": float(s.f),
-        "amplitude": float(res["amplitude"]), "stable": stable,
+        "amplitude": float(res["amplitude"]), "stable": bool(label["slope"] > 0),
         "stability_method": STABILITY_METHOD,
         "status": "ok" if (res["noninvasive"] and res["gate"]) else "not_converged",
         "settings": settings,

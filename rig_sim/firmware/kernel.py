@@ -215,7 +215,9 @@ def advance(nsteps, y, fw, ic, cfg, rig, phys, eff, noise, ext, acc, hist, fhist
                 u = -clamp
                 ic[IC_SAT] += 1
         # ---- safety: amplitude trip (latched) ------------------------------------
-        if abs(x) > cfg[CFG_TRIP] and ic[IC_FAULT] == 0:
+        # the trip guards the output stage: it acts while armed (disarmed, there is
+        # no output to cut and the structure may ring freely)
+        if abs(x) > cfg[CFG_TRIP] and ic[IC_FAULT] == 0 and ic[IC_ARMED] == 1:
             ic[IC_FAULT] = FAULT_TRIP
             ic[IC_ARMED] = 0
             ic[IC_TRIPS] += 1
