@@ -52,7 +52,8 @@ def test_sigma0_stable_and_unstable_cycles_match_the_truth(sigma0_campaign, trut
         # non-invasive at the end: control force RMS under 1 % of the heave spring force's
         extra = p["extra"]
         assert extra["control_rms"] < 0.01 * K_H * extra["response_rms"], p["key"]
-    assert {round(p["parameter"], 3) for p in unstable} == {round(p["parameter"], 3) for p in stable}
+    # spread across the bistable range (fold 16.82 m/s, Hopf 23.95 m/s)
+    assert min(p["parameter"] for p in unstable) < 18.6 and max(p["parameter"] for p in unstable) > 22.2
 
 
 def test_inspect_json_and_plot(sigma0_campaign, tmp_path):
