@@ -184,6 +184,7 @@ def _lockstep_session(rig_process, seed: int) -> tuple[np.ndarray, list[int]]:
         c.write(advance=2000)
         block = c.pull_ring()
         assert block.gap == 0
+        assert np.all(np.diff(block.sample) == 1)
         samples.append(np.column_stack([block.data[f] for f in ("x", "x_dot", "q2", "target", "control")]))
     fourier = c.read_words("input", M.CHANNEL_BASE["response"], 62)
     c.close()

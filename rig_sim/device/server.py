@@ -22,12 +22,14 @@ from dataclasses import dataclass
 
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
+from pymodbus.exceptions import ModbusIOException
 from pymodbus.pdu import ExceptionResponse
 from pymodbus.pdu.device import ModbusDeviceIdentification
 from pymodbus.pdu.register_message import ReadWriteMultipleRegistersRequest
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import SimData, SimDevice
+from pymodbus.transaction import TransactionManager
 from pymodbus.transport import CommType
 
 from ..firmware.board import Board
@@ -48,14 +50,22 @@ class ServiceError(RuntimeError):
 RTU_FRAME_SILENCE_S = 0.02
 
 
+def _fc23_counts_ok(pdu: ReadWriteMultipleRegistersRequest) -> bool:
+    """The quantity and byte-count checks pymodbus's FC23 makes before it writes."""
+    payload = getattr(pdu, "_payload_byte_count", None)
+    return (1 <= pdu.read_count <= 125 and 1 <= pdu.write_count <= 121
+            and pdu.write_byte_count == 2 * pdu.write_count and payload in (None, pdu.write_byte_count))
+
+
 def _handler_class(registers: RigRegisters):
     class RigRequestHandler(ServerRequestHandler):
         """pymodbus's handler plus: the request's connection (for control of the
         rig), one queued PDU per scheduled handling (pymodbus keeps only the last
         decoded PDU, so two requests decoded before the first is handled ran the
-        second twice and the first never), every complete frame of one read
-        decoded (pipelined TCP requests), the RTU inter-frame silence, and FC23
-        validating its read part before it writes."""
+        second twice and the first never), every complete frame of a read decoded
+        and an undecodable frame dropping only itself (pipelined TCP requests),
+        the RTU inter-frame silence, and FC23 validating its read part before it
+        writes."""
 
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
@@ -64,22 +74,39 @@ def _handler_class(registers: RigRegisters):
             self._last_rx = 0.0
 
         def datagram_received(self, data, addr):
+            if self.comm_params.handle_local_echo:
+                super().datagram_received(data, addr)
+                return
+            buf = self.recv_buffer
             if self._rtu:
                 now = time.monotonic()
-                if self.recv_buffer and now - self._last_rx > RTU_FRAME_SILENCE_S:
-                    self.recv_buffer = b""          # stale partial frame
+                if buf and now - self._last_rx > RTU_FRAME_SILENCE_S:
+                    buf = b""                        # stale partial frame
                 self._last_rx = now
-            super().datagram_received(data, addr)
-            while self.recv_buffer:                  # further frames of the same read
-                cut = self.callback_data(self.recv_buffer, addr)
+            # pymodbus decodes one frame per read and drops a read longer than one
+            # frame; decode every complete frame, keep only an incomplete tail
+            buf += data
+            while buf:
+                cut = self.callback_data(buf, addr)
                 if cut <= 0:
                     break
-                self.recv_buffer = self.recv_buffer[cut:]
+                buf = buf[cut:]
+            self.recv_buffer = b"" if len(buf) > self.max_buffer_size else buf
 
         def callback_data(self, data, addr=None):
-            used = super().callback_data(data, addr)
+            # ServerRequestHandler.callback_data, except that an undecodable frame
+            # costs only that frame (not the requests pipelined behind it) and
+            # each decoded PDU is queued for its own handling
+            try:
+                used = TransactionManager.callback_data(self, data, addr)
+            except ModbusIOException as exc:
+                response = ExceptionResponse(exc.fcode or 0, exception_code=ExcCodes.ILLEGAL_FUNCTION,
+                                             device_id=exc.dev_id, transaction=exc.transaction_id)
+                self.server_send(response, addr)
+                return len(data) if self._rtu else (self.framer.decode(data)[0] or len(data))
             if self.last_pdu is not None:
                 self._pending.append((self.last_pdu, self.last_addr))
+                self.loop.call_soon(self.handle_later)
             return used
 
         async def handle_request(self):
@@ -87,8 +114,9 @@ def _handler_class(registers: RigRegisters):
                 return
             self.last_pdu, self.last_addr = self._pending.popleft()
             pdu = self.last_pdu
-            if isinstance(pdu, ReadWriteMultipleRegistersRequest) and 1 <= pdu.read_count <= 125:
+            if isinstance(pdu, ReadWriteMultipleRegistersRequest) and _fc23_counts_ok(pdu):
                 # FC23 writes before it reads; an illegal read part must not write
+                # (counts first: those the PDU checks itself, answering 03)
                 probe = registers.read(pdu.function_code, pdu.read_address, pdu.read_count, self)
                 if isinstance(probe, ExcCodes):
                     response = ExceptionResponse(pdu.function_code, probe)
