@@ -268,5 +268,16 @@ def main(argv=None) -> int:
     return 0
 
 
+def _entry() -> int:
+    try:
+        return main()
+    except BrokenPipeError:          # output piped into `head` and the like
+        try:
+            sys.stdout = open(os.devnull, "w")
+        except OSError:
+            pass
+        return 0
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(_entry())

@@ -175,6 +175,8 @@ class Engine:
                 if self.applied:
                     self.rig.write(**self.applied)
                 self.armed = False
+                # the new rig's period counter starts afresh: count from it
+                self._config_periods = self.rig.get("periods")
                 self.emit("link", {"event": "restored", "time": time.time()})
                 return
             except RigError:
@@ -191,7 +193,13 @@ class Engine:
             self._config_periods = self._call(lambda: self.rig.get("periods"))
             return None
         if isinstance(msg, Arm):
-            self._call(lambda: self.rig.write(command=1))
+            try:
+                self._call(lambda: self.rig.write(command=1))
+            except RigError as exc:
+                if exc.code != 4:                   # 4: refused because a fault is latched
+                    raise
+                code = self._call(lambda: self.rig.get("fault_code"))
+                self._handle_fault(code)            # raises RigFault for the plan
             self.armed = True
             return None
         if isinstance(msg, Disarm):

@@ -22,7 +22,8 @@ harmonics 2..7) vanishes. Per point:
    (c, s: the control channel's mean cosine/sine coefficients over navg periods;
    se(r) = sqrt(sum var / navg) of the same 13 coefficients: the residual is either
    below ``noninvasive_tol`` of the fundamental or indistinguishable from the
-   sensor-noise floor). The response harmonics are read *through the controller*,
+   sensor-noise floor: pure noise has |r| ~ se(r), and |r| > 2 se(r) in well under
+   1 % of cases). The response harmonics are read *through the controller*,
    x_k = T_k - u_k / C(k w) (C the board's PD law, known exactly), see
    `picard_update` for why. The first target of a point is the secant extrapolation
    of the previous two points' converged harmonics.
@@ -35,7 +36,9 @@ harmonics 2..7) vanishes. Per point:
    point's numbers: ``amplitude`` = hypot(a1, b1) of the response (m),
    ``parameter`` = hypot(a1, b1) of the total excitation, the forcing that
    sustains the orbit (m/s^2), ``frequency`` = the forcing frequency (Hz).
-   Non-invasiveness is checked again on the fitted control (status ``ok`` or
+   Non-invasiveness is checked again on the fitted control (se from the fit's
+   residual); if it fails, Picard goes on from the fitted coefficients and the
+   point is recorded again (``max_picard`` iterations in all; status ``ok`` or
    ``not_converged``). Why not the board's estimate: when a forcing period is not a
    whole number of samples (23 Hz at 10 kHz: 434.8) the board's running correlation
    biases the fundamental by ~0.1-0.2 %; on the upper branch next to the jump-down
@@ -60,8 +63,8 @@ minimum after that. The sweep ends at (1 + ``beyond_fold``) x the jump-down fold
 amplitude, or at ``amplitude_stop`` when that is set (> 0), and in any case once the
 response amplitude or the sustaining forcing, predicted for the next step, would
 exceed ``amplitude_max`` or ``phi_max``. Each confirmed fold is emitted as
-a ``note`` (located at the vertex of the parabola through the extreme point and
-its neighbours).
+a ``note`` (located at the vertex of the least-squares parabola through the
+points within 2 % of the extreme point's amplitude, at least its two neighbours).
 
 **Stability** from branch geometry, point by point: traced with the amplitude
 increasing monotonically, the middle branch between the folds is where the
@@ -72,15 +75,25 @@ of its sweep (the origin, on every S-curve, anchors the first two). Where that
 disagrees with the previous point's label (a fold between them), is within 3
 standard errors of zero, or puts the parabola's vertex within half a step of the
 point (a fold right there, where a parabola over the last steps is least
-trustworthy: the jump-down fold is nearly a corner), a *probe* point is measured at target A - eps (eps
-balancing the parabola's curvature against the noise of Phi) and the label is the
-sign of the secant between the probe and the point, i.e. of dPhi/dA within eps of
-the point. The probe is not a point of the curve (it is in ``extra['probe']``).
-A label can therefore only be wrong for a point within ~eps/2 of a fold.
+trustworthy: the jump-down fold is nearly a corner), a *probe* is measured at
+target A - eps (eps balancing the parabola's curvature against the noise of Phi)
+and the label is the sign of the secant between the probe and the point, i.e. of
+dPhi/dA within eps of the point. The probe is not a point of the curve (it is in
+``extra['probe']``). A label can then only be wrong within ~eps/2 of a fold, or
+where the true forcing is within its noise (~0.003 m/s^2 here) of the fold's; the
+slope and its standard error are in ``extra`` (``label_confident`` = |dPhi/dA| > 3 se).
+
+**Fold refinement.** When the labels of two successive sweep points differ, a fold
+lies between them: up to ``fold_refine`` points bisect that interval (in target
+amplitude) until the bracket is under ``fold_gap`` of the amplitude, each labelled
+by its own probe (``extra['refinement']`` = True; emitted as soon as measured, so
+the file is not in amplitude order there). They locate the fold notes and give the
+fit the data next to the folds; the sweep then goes on from where it was.
 
 **Faults.** A ``RigFault`` thrown into a point (the engine has disarmed the rig
-and reset the latch) is noted, the rig is re-armed and the point retried at half
-the step from the previous point; after ``max_fault_retries`` failures, or when
+and reset the latch) is noted; the rig rings down disarmed, is re-armed on a
+target ramped up to ``rearm_fraction`` of the last good point's, and the point is
+retried at half the step from the previous point; after ``max_fault_retries`` failures, or when
 the halved step would fall under step_min, the target is skipped with a note and
 the sweep goes on one step further. ``max_fault_skips`` consecutive skips end the
 frequency. ``RigRestarted`` (link lost; the engine re-applied the settings) voids
@@ -97,8 +110,9 @@ but not emitted. The sweep then goes on from the largest done target.
 a one-harmonic model of this rig (linear stiffness per unit mass (2 pi 18 Hz)^2 ~
 1.28e4 1/s^2, hardening) over 20-26 Hz and up to 1.2x the jump-down fold:
 (a) the controlled system's response amplitude must rise monotonically with the
-target (no fold of the closed loop, so the middle branch is held): any kp >= 0
-with kd >= 50 does, and kp > w^2 - k alone would;
+target (no fold of the closed loop, so the middle branch is held): kp = 1e4 with
+kd = 50 does at 20, 23 and 26 Hz (so do kp = 0 with kd >= 50, or kp = 1.5e4 with
+kd = 0; kp = 1e4 with kd = 0 leaves a fold at 26 Hz);
 (b) Picard contracts at harmonic k by |C/(C + P^-1)|(k w) (P the plant, C = kp +
 i k w kd): above the plant's resonance a large kp puts the *closed-loop*
 resonance on 2w and the iteration diverges (kp = 3e4, kd = 100 gives 1.2-1.35 at 2w
@@ -148,11 +162,13 @@ DEFAULTS = {
     "phi_max": 80.0,             # end a sweep once the sustaining forcing exceeds this, m/s^2
     "fold_margin": 0.02,
     "probe_min": 5.0e-6,         # smallest probe offset, m
+    "fold_refine": 3,            # points bisecting towards a fold once it is passed
+    "fold_gap": 0.01,            # ... until its neighbours are this close (relative)
     # convergence
     "max_picard": 8,
     "picard_from_control": True,
     "noninvasive_tol": 0.005,
-    "noninvasive_sigmas": 3.0,
+    "noninvasive_sigmas": 2.0,
     "variance_rel": 0.004,
     "max_gate_polls": 4,
     "record_s": 0.25,
@@ -160,6 +176,10 @@ DEFAULTS = {
     "max_fault_retries": 2,
     "max_fault_skips": 3,
     "max_restarts": 3,
+    "rearm_ramp": 5,             # re-arm onto the last good target in this many steps
+    "rearm_tries": 10,
+    "rearm_fraction": 0.8,       # ... onto this fraction of it (the last good point may be
+                                 # just under the trip level)
 }
 
 _KEY = re.compile(r"^f=([0-9.]+)/A=([0-9.]+)$")
@@ -250,11 +270,11 @@ def controller_response(k: int, f: float, o: dict) -> complex:
     return C
 
 
-def picard_update(T: np.ndarray, est, f: float, o: dict) -> np.ndarray:
+def picard_update(T: np.ndarray, control, response, f: float, o: dict) -> np.ndarray:
     """One Picard step: DC and harmonics 2..7 of the target <- the response's.
 
     With ``picard_from_control`` (default) the response harmonics are read through
-    the controller: x_k = T_k - u_k / C(k w), u_k the control channel's estimate.
+    the controller: x_k = T_k - u_k / C(k w), u_k the control's coefficient.
     That is the same quantity as the response channel's x_k, but the board's
     estimator leaks ~0.05 % of a signal's fundamental into each harmonic when a
     forcing period is not a whole number of samples; put into the target and
@@ -263,11 +283,11 @@ def picard_update(T: np.ndarray, est, f: float, o: dict) -> np.ndarray:
     jump-down fold. Through the control channel the leak is divided by |C| instead.
     """
     T = T.copy()
-    r = np.asarray(est.fourier["response"]["mean"], dtype=float)
+    r = np.asarray(response, dtype=float)
     if not o["picard_from_control"]:
         T[HIGHER] = r[HIGHER]
         return T
-    u = np.asarray(est.fourier["control"]["mean"], dtype=float)
+    u = np.asarray(control, dtype=float)
     T[0] = T[0] - u[0] / o["kp"] if o["kp"] != 0 else r[0]   # kp = 0: DC is not controlled
     for k in range(2, NH + 1):
         zx = complex(T[k], -T[k + NH]) - complex(u[k], -u[k + NH]) / controller_response(k, f, o)
@@ -313,6 +333,8 @@ class _Sweep:
         self.folds: list[dict] = []
         self.phase = 0                                       # folds confirmed so far
         self.ext_i = 0                                       # index of the running extreme
+        self.extra: list[tuple[float, float]] = []          # fold-refinement points (A, Phi)
+        self.armed = True                                    # False after a failed re-arm
 
     def predict_harmonics(self, A: float) -> np.ndarray:
         if not self.harm:
@@ -363,12 +385,24 @@ class _Sweep:
 
     def _confirm(self, kind: str) -> dict:
         j = self.ext_i
-        A_f, phi_f = self.pts[j]
-        if 1 <= j < len(self.pts) - 1:
-            c2, c1, c0 = _parabola(self.pts[j - 1:j + 2])
+        # locate it among all points around the extreme, fold-refinement ones included
+        lo = self.pts[j - 1][0] if j >= 1 else 0.0
+        hi = self.pts[j + 1][0] if j + 1 < len(self.pts) else self.pts[j][0]
+        pool = sorted({p for p in self.pts + self.extra if lo <= p[0] <= hi})
+        pick = max if kind == "jump-up" else min
+        m = pool.index(pick(pool, key=lambda p: p[1]))
+        A_f, phi_f = pool[m]
+        if 1 <= m < len(pool) - 1:
+            # least-squares parabola over the points within 2 % of the extreme's
+            # amplitude (at a flat fold three points leave the vertex to the noise),
+            # at least the extreme and its two neighbours
+            near = [p for p in pool if abs(p[0] - A_f) <= 0.02 * A_f]
+            if len(near) < 3:
+                near = pool[m - 1:m + 2]
+            c2, c1, c0 = np.polyfit([p[0] for p in near], [p[1] for p in near], 2)
             if c2 != 0:
                 Av = -c1 / (2 * c2)
-                if self.pts[j - 1][0] <= Av <= self.pts[j + 1][0]:
+                if pool[m - 1][0] <= Av <= pool[m + 1][0]:
                     A_f, phi_f = float(Av), float(np.polyval([c2, c1, c0], Av))
         fold = {"kind": kind, "amplitude": float(A_f), "parameter": float(phi_f),
                 "frequency": self.f}
@@ -382,7 +416,8 @@ class _Sweep:
         o = self.o
         phi_next = self.pts[-1][1]
         if len(self.pts) >= 3 and self.targets_done[-1] > self.targets_done[-2]:
-            rate = (self.pts[-1][1] - self.pts[-2][1]) / (self.targets_done[-1] - self.targets_done[-2])
+            dT = self.targets_done[-1] - self.targets_done[-2]
+            rate = (self.pts[-1][1] - self.pts[-2][1]) / dT
             phi_next += max(rate, 0.0) * (A_next - self.targets_done[-1])
         if len(self.pts) > 1 and phi_next > o["phi_max"]:
             return f"forcing would exceed phi_max ({phi_next:.1f} m/s^2 predicted)"
@@ -397,7 +432,8 @@ class _Sweep:
         # |forcing / C(w)| (millimetres on the upper branch), so predict the response
         A_meas = self.pts[-1][0]
         if len(self.pts) >= 3 and self.targets_done[-1] > self.targets_done[-2]:
-            gain = (self.pts[-1][0] - self.pts[-2][0]) / (self.targets_done[-1] - self.targets_done[-2])
+            dT = self.targets_done[-1] - self.targets_done[-2]
+            gain = (self.pts[-1][0] - self.pts[-2][0]) / dT
             A_meas += max(gain, 0.0) * (A_next - self.targets_done[-1])
         if A_meas > o["amplitude_max"] + 1e-9:
             return "amplitude_max reached"
@@ -451,13 +487,20 @@ def oscillator_plan(config: dict):
         o = {**o0, "sample_rate": float((ctx.identity or {}).get("sample_rate", 10000.0))}
         state = {"index": len(ctx.previous or [])}
         summaries = _summaries(ctx)
-        yield Configure({"kp": o["kp"], "kd": o["kd"], "navg": o["navg"], "phase_mode": 0,
-                         "clamp": o["clamp"], "trip": o["trip"], "filter_hz": o["filter_hz"],
-                         "forcing_amplitude": o["forcing_amplitude"], "frequency": freqs[0],
-                         **_zero_targets()})
+        settings = {"kp": o["kp"], "kd": o["kd"], "navg": o["navg"], "phase_mode": 0,
+                    "clamp": o["clamp"], "trip": o["trip"], "filter_hz": o["filter_hz"],
+                    "forcing_amplitude": o["forcing_amplitude"], "frequency": freqs[0],
+                    **_zero_targets()}
+        try:
+            yield Configure(settings)
+        except (RigFault, RigRestarted):      # lost before it was written: once more
+            yield Configure(settings)
         for f in freqs:
             yield from _run_sweep(_Sweep(f, o), o, ctx, summaries, state)
-        yield Disarm()
+        try:
+            yield Disarm()
+        except (RigFault, RigRestarted):      # disarmed either way
+            pass
 
     return plan
 
@@ -487,13 +530,19 @@ def _done_targets(ctx, f: float) -> list[float]:
 
 def _run_sweep(s: _Sweep, o: dict, ctx, summaries: dict, state: dict):
     """Generator: the whole sweep at one frequency."""
-    yield Configure({"frequency": s.f, "forcing_amplitude": o["forcing_amplitude"],
-                     "phase_mode": 0, **_zero_targets()})
-    yield Arm()
+    try:
+        yield Configure({"frequency": s.f, "forcing_amplitude": o["forcing_amplitude"],
+                         "phase_mode": 0, **_zero_targets()})
+        yield Arm()
+    except (RigFault, RigRestarted):
+        s.armed = False                   # the first point re-arms (and re-configures)
+        yield Configure({"frequency": s.f, "forcing_amplitude": o["forcing_amplitude"],
+                         "phase_mode": 0, **_zero_targets()})
     done = ctx.done or set()
     replay = _done_targets(ctx, s.f)      # already in the file: rebuild the state only
     A = replay.pop(0) if replay else round(o["amplitude_start"], 6)
     prev_A = None                         # target of the last measured point
+    last = None                           # its measurement
     skips = 0
     why = ""
     while True:
@@ -503,6 +552,8 @@ def _run_sweep(s: _Sweep, o: dict, ctx, summaries: dict, state: dict):
             slope, _, _ = s.add(A, amp, phi, 0.0, s.predict_harmonics(A))
             s.labels.append(st if st is not None else slope > 0)
             s.update_folds()
+            last = {"target": A, "amplitude": amp, "parameter": phi, "parameter_se": 0.0,
+                    "harmonics": s.harm[-1][1]}
             prev_A = A
         else:
             res = yield from _attempt(s, o, A, prev_A)
@@ -528,18 +579,23 @@ def _run_sweep(s: _Sweep, o: dict, ctx, summaries: dict, state: dict):
                 spacing = s.pts[-1][0] - s.pts[-2][0]
                 near_vertex = c2 != 0 and abs(slope / (2 * c2)) < 0.5 * spacing
                 if (slope > 0) != prev_label or abs(slope) <= 3 * se or near_vertex:
-                    probe = yield from _probe(s, o, res, c2)
+                    below = s.targets_done[-2] if len(s.targets_done) >= 2 else 0.0
+                    probe = yield from _probe(s, o, res, c2, below)
                     if probe is not None:
                         label.update(probe)
                 s.labels.append(label["slope"] > 0)
-                fold = s.update_folds()
                 if key not in done:
                     yield Emit("point", _point_doc(state["index"], key, s, res, o, label))
                     state["index"] += 1
+                if last is not None and s.labels[-1] != s.labels[-2]:
+                    # a fold between the last two points: close in on it
+                    yield from _refine_fold(s, o, done, state, last, res)
+                fold = s.update_folds()
                 if fold is not None:
                     yield Emit("note", {"text": f"f = {s.f:g} Hz: {fold['kind']} fold near "
                                                 f"A = {fold['amplitude'] * 1e3:.3f} mm, Phi = "
                                                 f"{fold['parameter']:.3f} m/s^2", "fold": fold})
+                last = res
                 prev_A = A
         if replay:
             A = replay.pop(0)
@@ -554,12 +610,61 @@ def _run_sweep(s: _Sweep, o: dict, ctx, summaries: dict, state: dict):
                         "folds": s.folds})
 
 
-def _probe(s: _Sweep, o: dict, res: dict, c2: float):
-    """Generator: the local slope just below a point whose label is in doubt.
-    Returns {"slope", "slope_se", "method", "probe"} or None if the probe failed."""
+def _refine_fold(s: _Sweep, o: dict, done, state: dict, lo: dict, hi: dict):
+    """Generator: bisect (in target amplitude) between two points whose labels differ
+    until they are less than ``fold_gap`` of the amplitude apart (at most
+    ``fold_refine`` points). Each new point is labelled by its own probe (the
+    secant just below it), emitted, and kept for locating the fold."""
+    lab_lo = s.labels[-2]
+    for _ in range(int(o["fold_refine"])):
+        if hi["amplitude"] - lo["amplitude"] <= o["fold_gap"] * hi["amplitude"]:
+            return
+        T = round(0.5 * (lo["target"] + hi["target"]), 6)
+        key = point_key(s.f, T)
+        if not lo["target"] < T < hi["target"] or key in done:
+            return
+        res = yield from _attempt(s, o, T, lo["target"],
+                                  start=0.5 * (lo["harmonics"] + hi["harmonics"]))
+        if res is None:
+            return
+        T = res["target"]
+        key = point_key(s.f, T)
+        trio = [(lo["amplitude"], lo["parameter"]), (res["amplitude"], res["parameter"]),
+                (hi["amplitude"], hi["parameter"])]
+        c2 = float(_parabola(trio)[0])
+        slope, se = _centred_slope(trio, [lo["parameter_se"], res["parameter_se"],
+                                          hi["parameter_se"]])
+        label = {"slope": slope, "slope_se": se, "method": "centred parabola", "probe": None,
+                 "refinement": True}
+        probe = yield from _probe(s, o, res, c2, lo["target"])
+        if probe is not None:
+            label.update(probe)
+        s.extra.append((res["amplitude"], res["parameter"]))
+        if key not in done:
+            yield Emit("point", _point_doc(state["index"], key, s, res, o, label))
+            state["index"] += 1
+        if (label["slope"] > 0) == lab_lo:
+            lo = res
+        else:
+            hi = res
+
+
+def _centred_slope(trio, sig) -> tuple[float, float]:
+    """dPhi/dA at the middle of three points (parabola) and its standard error."""
+    (x0, _), (x1, _), (x2, _) = trio
+    w = np.array([(x1 - x2) / ((x0 - x1) * (x0 - x2)),
+                  (2 * x1 - x0 - x2) / ((x1 - x0) * (x1 - x2)),
+                  (x1 - x0) / ((x2 - x0) * (x2 - x1))])
+    y = np.array([p[1] for p in trio])
+    return float(w @ y), float(np.sqrt(np.sum((w * np.asarray(sig)) ** 2)))
+
+
+def _probe(s: _Sweep, o: dict, res: dict, c2: float, prev: float):
+    """Generator: the local slope just below a point whose label is in doubt (the
+    probe stays above the target `prev` of the point below it). Returns
+    {"slope", "slope_se", "method", "probe"} or None if the probe failed."""
     A = res["target"]
     sig = max(res["parameter_se"], 1e-12)
-    prev = s.targets_done[-2] if len(s.targets_done) >= 2 else 0.0
     eps = math.sqrt(2 * math.sqrt(2) * sig / max(abs(2 * c2), 1e-300)) if c2 else 0.5 * (A - prev)
     eps = min(max(eps, o["probe_min"]), 0.5 * (A - prev))
     Ap = round(A - eps, 7)
@@ -569,7 +674,7 @@ def _probe(s: _Sweep, o: dict, res: dict, c2: float):
         pr = yield from _measure(s, o, Ap, start=res["harmonics"])
     except (RigFault, RigRestarted) as exc:
         yield Emit("note", {"text": f"f = {s.f:g} Hz: probe at {Ap * 1e3:.4f} mm lost ({exc})"})
-        yield from _rearm()
+        yield from _rearm(s, o, prev if prev > 0 else None)
         return None
     dA = res["amplitude"] - pr["amplitude"]
     if dA <= 0:
@@ -582,21 +687,23 @@ def _probe(s: _Sweep, o: dict, res: dict, c2: float):
                       "rig_seconds": pr["rig_seconds"]}}
 
 
-def _attempt(s: _Sweep, o: dict, A: float, prev_A):
+def _attempt(s: _Sweep, o: dict, A: float, prev_A, start=None):
     """Generator: measure the point at target A, handling faults and restarts.
     Returns the measurement dict or None (skipped)."""
     faults = 0
     restarts = 0
+    if not s.armed:
+        if not (yield from _rearm(s, o, prev_A)):
+            return None
     while True:
         try:
-            return (yield from _measure(s, o, A))
+            return (yield from _measure(s, o, A, start=start))
         except RigRestarted:
             restarts += 1
             yield Emit("note", {"text": f"f = {s.f:g} Hz, A = {A * 1e3:.3f} mm: link lost; "
                                         "point repeated"})
-            if restarts > o["max_restarts"]:
+            if restarts > o["max_restarts"] or not (yield from _rearm(s, o, None)):
                 return None
-            yield from _rearm()
         except RigFault as exc:
             faults += 1
             base = prev_A if prev_A is not None else 0.0
@@ -604,73 +711,116 @@ def _attempt(s: _Sweep, o: dict, A: float, prev_A):
             if prev_A is None or faults > o["max_fault_retries"] or new_A - base < o["step_min"]:
                 yield Emit("note", {"text": f"f = {s.f:g} Hz: {exc} at target A = "
                                             f"{A * 1e3:.3f} mm; target skipped"})
-                yield from _rearm()
+                yield from _rearm(s, o, prev_A)
                 return None
             yield Emit("note", {"text": f"f = {s.f:g} Hz: {exc} at target A = {A * 1e3:.3f} mm; "
                                         f"retrying at {new_A * 1e3:.3f} mm"})
             A = new_A
             s.h = max(o["step_min"], new_A - base)
-            yield from _rearm()
+            if not (yield from _rearm(s, o, prev_A)):
+                return None
 
 
-def _rearm():
-    """Arm again after a fault or a reconnect (a fault while arming is retried)."""
-    for _ in range(3):
+def _rearm(s: _Sweep, o: dict, back_to: float | None):
+    """Generator: arm again after a fault or a reconnect; True once armed. With
+    `back_to`, first on ``rearm_fraction`` of the target of that (last good) point
+    (which may lie just under the trip level), ramped up from rest in
+    ``rearm_ramp`` steps, waiting for the rig to settle there: a PD loop (damping
+    ratio ~0.2 here) jumping from rest straight onto a large target overshoots it
+    by half and can trip again. Three tries; after that `s.armed` stays False and the next
+    point tries again before it measures anything."""
+    s.armed = False
+    for _ in range(int(o["rearm_tries"])):
         try:
-            yield Arm()
-            return
+            # disarmed, the structure rings down on its own first (a trip latches
+            # again while it still swings past the trip level: that is a retry);
+            # the Configure also restarts the engine's period count for the Settle
+            yield Configure(_zero_targets())
+            yield Settle(periods=int(o["transient_periods"]))
+            if back_to is not None:
+                T = s.harm[-1][1] if s.harm else np.zeros(2 * NH + 1)
+                n = max(int(o["rearm_ramp"]), 1)
+                top = o["rearm_fraction"] * back_to
+                yield Configure(s.settings(top / n, T / n))
+                yield Arm()
+                for k in range(2, n + 1):          # ramp up: a jump from rest overshoots
+                    yield Settle(periods=int(o["transient_periods"]))
+                    yield Configure(s.settings(top * k / n, T * k / n))
+                yield Settle(periods=int(o["transient_periods"]) + o["navg"])
+            else:
+                yield Arm()
+            s.armed = True
+            return True
         except (RigFault, RigRestarted):
             continue
-    yield Arm()
+    yield Emit("note", {"text": f"f = {s.f:g} Hz: the rig could not be re-armed "
+                                f"({int(o['rearm_tries'])} tries)"})
+    return False
 
 
 def _measure(s: _Sweep, o: dict, A: float, start=None):
-    """Generator: Picard iteration, variance gate and record at target amplitude A."""
+    """Generator: Picard iteration, variance gate and record at target amplitude A.
+    When the record's fit still finds the control invasive, Picard goes on from it
+    (within ``max_picard`` iterations in all) and the point is recorded again."""
     navg = o["navg"]
     t_wall = time.time()
     T = s.predict_harmonics(A) if start is None else np.array(start, dtype=float)
     rows = []
-    est = None
-    for _ in range(int(o["max_picard"])):
-        yield Configure(s.settings(A, T))
-        est = yield Settle(periods=int(o["transient_periods"]) + navg)
+    iters = 0
+    rig_s = 0.0
+    while True:
+        est = None
+        while iters < int(o["max_picard"]) or est is None:
+            yield Configure(s.settings(A, T))
+            est = yield Settle(periods=int(o["transient_periods"]) + navg)
+            iters += 1
+            rig_s += est.waited_s
+            resid, fund, se = invasiveness(est.fourier["control"]["mean"],
+                                           est.fourier["control"]["var"], navg)
+            rows.append(_row(len(rows), "picard", A, est, resid, fund, se))
+            if resid <= max(o["noninvasive_tol"] * fund, o["noninvasive_sigmas"] * se):
+                break
+            T = picard_update(T, est.fourier["control"]["mean"], est.fourier["response"]["mean"],
+                              s.f, o)
+        gate_ok = _gate(est, o)
+        for _ in range(int(o["max_gate_polls"])):
+            if gate_ok:
+                break
+            yield Configure(s.settings(A, T))
+            est = yield Settle(periods=navg)
+            rig_s += est.waited_s
+            resid, fund, se = invasiveness(est.fourier["control"]["mean"],
+                                           est.fourier["control"]["var"], navg)
+            rows.append(_row(len(rows), "gate", A, est, resid, fund, se))
+            gate_ok = _gate(est, o)
+        if o["record_s"] > 0:        # the estimate read after it covers its last navg periods
+            est = yield Settle(periods=0, record_s=float(o["record_s"]))
+            rig_s += est.waited_s
+            gate_ok = _gate(est, o)
         resid, fund, se = invasiveness(est.fourier["control"]["mean"],
                                        est.fourier["control"]["var"], navg)
-        rows.append(_row(len(rows), "picard", A, est, resid, fund, se, navg))
-        if resid <= max(o["noninvasive_tol"] * fund, o["noninvasive_sigmas"] * se):
+        phi, sphi = forcing_of(est.fourier["excitation"]["mean"], est.fourier["excitation"]["var"],
+                               navg)
+        amp = amplitude(est.fourier["response"]["mean"])
+        fit = record_fourier(est.samples, o["forcing_amplitude"])
+        source = "board"
+        if fit is not None:
+            source = "record"
+            amp = amplitude(fit["response"]["mean"])
+            phi = forcing_of(fit["excitation"]["mean"])[0]
+            # its standard error from the fit's residual (the board's per-period spread
+            # also holds the last of the transient and would overstate it)
+            sphi = forcing_of(fit["excitation"]["mean"], fit["excitation"]["var_of_mean"])[1]
+            resid, fund, se = invasiveness(fit["control"]["mean"], fit["control"]["var_of_mean"])
+        rows.append(_row(len(rows), "record", A, est, resid, fund, se))
+        noninvasive = resid <= max(o["noninvasive_tol"] * fund, o["noninvasive_sigmas"] * se)
+        if noninvasive or iters >= int(o["max_picard"]) or fit is None:
             break
-        T = picard_update(T, est, s.f, o)
-    gate_ok = _gate(est, o)
-    for _ in range(int(o["max_gate_polls"])):
-        if gate_ok:
-            break
-        yield Configure(s.settings(A, T))
-        est = yield Settle(periods=navg)
-        resid, fund, se = invasiveness(est.fourier["control"]["mean"],
-                                       est.fourier["control"]["var"], navg)
-        rows.append(_row(len(rows), "gate", A, est, resid, fund, se, navg))
-        gate_ok = _gate(est, o)
-    if o["record_s"] > 0:            # the estimate read after it covers its last navg periods
-        est = yield Settle(periods=0, record_s=float(o["record_s"]))
-        gate_ok = _gate(est, o)
-    resid, fund, se = invasiveness(est.fourier["control"]["mean"],
-                                   est.fourier["control"]["var"], navg)
-    rows.append(_row(len(rows), "record", A, est, resid, fund, se, navg))
-    phi, sphi = forcing_of(est.fourier["excitation"]["mean"], est.fourier["excitation"]["var"], navg)
-    amp = amplitude(est.fourier["response"]["mean"])
-    fit = record_fourier(est.samples, o["forcing_amplitude"])
-    source = "board"
-    if fit is not None:
-        source = "record"
-        amp = amplitude(fit["response"]["mean"])
-        phi, _ = forcing_of(fit["excitation"]["mean"])
-        resid, fund, _ = invasiveness(fit["control"]["mean"])
-    noninvasive = resid <= max(o["noninvasive_tol"] * fund, o["noninvasive_sigmas"] * se)
+        T = picard_update(T, fit["control"]["mean"], fit["response"]["mean"], s.f, o)
     return {"target": A, "estimate": est, "fit": fit, "source": source, "amplitude": amp,
             "parameter": phi, "parameter_se": sphi, "harmonics": T, "noninvasive": noninvasive,
             "gate": gate_ok, "residual": resid, "fundamental": fund, "residual_se": se,
-            "picard": sum(1 for r in rows if r["stage"] == "picard"), "history": rows,
-            "rig_seconds": float(sum(r["waited_s"] for r in rows)),
+            "picard": iters, "history": rows, "rig_seconds": rig_s,
             "wall_s": time.time() - t_wall}
 
 
@@ -681,7 +831,7 @@ def _gate(est, o) -> bool:
     return math.isfinite(est.frequency) and spread <= o["variance_rel"] * max(A1, 1e-9)
 
 
-def _row(i, stage, A, est, resid, fund, se, navg) -> dict:
+def _row(i, stage, A, est, resid, fund, se) -> dict:
     phi, _ = forcing_of(est.fourier["excitation"]["mean"])
     return {"iteration": i, "stage": stage, "target_amplitude": A,
             "amplitude": amplitude(est.fourier["response"]["mean"]), "parameter": phi,
@@ -701,18 +851,22 @@ def _point_doc(index, key, s: _Sweep, res: dict, o: dict, label: dict) -> dict:
         "target_amplitude": res["target"], "dc": float(coef[0]),
         "picard_iterations": res["picard"], "evaluations": len(res["history"]),
         "control_residual": res["residual"], "control_fundamental": res["fundamental"],
-        "invasiveness": res["residual"] / res["fundamental"] if res["fundamental"] > 0 else float("inf"),
+        "invasiveness": (res["residual"] / res["fundamental"] if res["fundamental"] > 0
+                         else float("inf")),
         "control_residual_se": res["residual_se"], "noninvasive": bool(res["noninvasive"]),
         "variance_gate": bool(res["gate"]), "parameter_se": res["parameter_se"],
         "values_from": res["source"],
         "board_amplitude": amplitude(resp),
         "board_parameter": forcing_of(est.fourier["excitation"]["mean"])[0],
         "dphi_da": label["slope"], "dphi_da_se": label["slope_se"],
-        "stability_from": label["method"], "label_confident": bool(abs(label["slope"]) > 3 * label["slope_se"]),
+        "stability_from": label["method"],
+        "label_confident": bool(abs(label["slope"]) > 3 * label["slope_se"]),
         "forcing_phase": float(math.atan2(exc[1 + NH], exc[1])),
         "response_phase": float(math.atan2(coef[1 + NH], coef[1])),
         "folds_passed": s.phase, "next_step": s.h, "rig_seconds": res["rig_seconds"],
+        "wall_seconds": res["wall_s"],
     }
+    extra["refinement"] = bool(label.get("refinement", False))
     if label["probe"] is not None:
         extra["probe"] = label["probe"]
     if fit is not None:
