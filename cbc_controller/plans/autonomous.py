@@ -169,9 +169,11 @@ def flutter_plan(config: dict):
 def _root_emitter(ctx, counter, s, o):
     """Generator factory: the Emit for a refined root (skipped if already logged)."""
     def emit(r):
-        k = sum(1 for _ in s.roots_emitted)
+        # keyed by kind, not by order: a root missed once must not rename the others
+        kind = "stable" if r["stable"] else "unstable"
+        k = sum(1 for x in s.roots_emitted if x["stable"] == r["stable"])
         s.roots_emitted.append(r)
-        key = f"V={s.V:.4f}/root{k}"
+        key = f"V={s.V:.4f}/{kind}{k}"
         if key in ctx.done:
             return None
         msg = Emit("point", _point_doc(counter["index"], key, s, r, o))
@@ -294,7 +296,10 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
         slope = (ehi - elo) / (hi - lo)
         # the root's location in A* is what matters: near the Hopf point e is shallow
         # (|de/dA*| << 1), so a small |e| alone can leave A* far from the root
-        if (hi - lo) <= 2 * tol or abs(e) <= 0.2 * tol * abs(slope):
+        if abs(e) <= 0.2 * tol * abs(slope):
+            break
+        if (hi - lo) <= 2 * tol:
+            A = hi - ehi * (hi - lo) / (ehi - elo)     # the root inside the final bracket
             break
         bisect = (hi - lo) > 0.5 * width
     # polish: with process noise a single e can have the wrong sign, and bracketing
@@ -315,8 +320,9 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
         yield Configure({**s.targets(A), "frequency": s.f})
         est = yield Settle(periods=o["navg"], record_s=o["record_s"])
         e = A - amplitude(est.fourier["response"]["mean"])
-        # accepted only if the recorded orbit itself satisfies the root condition
-        ok = abs(e) <= 2 * tol
+        # accepted only if the recorded orbit itself satisfies the root condition, to
+        # within the tolerance on the root's location (|e| / |de/dA*|, local slope)
+        ok = abs(e) <= 2 * tol * max(abs(slope), 0.05)
         if ok:
             break
     return {"target": A, "error": e, "estimate": est, "stable": not decreasing, "converged": ok}

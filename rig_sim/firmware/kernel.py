@@ -81,6 +81,21 @@ def _rk4(kind, y, dt, u_exc, f_ext, m_ext, phys, eff, mass, k1, k2, k3, k4, tmp)
         y[j] += dt / 6.0 * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
 
 
+@njit(cache=True, inline="always")
+def _accumulate(acc, cosk, sink, w, sig0, sig1, sig2, sig3):
+    for k in range(NCOEF):
+        if k == 0:
+            wk = w
+        elif k <= NHARM:
+            wk = cosk[k] * w
+        else:
+            wk = sink[k - NHARM] * w
+        acc[CH_RESPONSE, k] += sig0 * wk
+        acc[CH_CONTROL, k] += sig1 * wk
+        acc[CH_EXCITATION, k] += sig2 * wk
+        acc[CH_SECOND, k] += sig3 * wk
+
+
 @njit(cache=True)
 def _close_period(fw, ic, cfg, acc, hist, fhist, fmean, fvar, cmean, cvar, dtheta_sum):
     """One estimator period is complete: turn correlations into coefficients and
@@ -252,24 +267,22 @@ def advance(nsteps, y, fw, ic, cfg, rig, phys, eff, noise, ext, acc, hist, fhist
         sig1 = u
         sig2 = exc
         sig3 = meas[2]
-        for k in range(NCOEF):
-            if k == 0:
-                w = dth
-            elif k <= NHARM:
-                w = cosk[k] * dth
-            else:
-                w = sink[k - NHARM] * dth
-            acc[CH_RESPONSE, k] += sig0 * w
-            acc[CH_CONTROL, k] += sig1 * w
-            acc[CH_EXCITATION, k] += sig2 * w
-            acc[CH_SECOND, k] += sig3 * w
-        fw[FW_PERIOD_T] += dt
-        fw[FW_TH_UNWRAP] += dth
+        prev_unwrap = fw[FW_TH_UNWRAP]
+        # a period rarely ends on a sample: split the boundary sample's weight between the
+        # closing period and the next, so each window spans exactly 2 pi of phase
+        w_now = dth
+        if dth > 0.0 and prev_unwrap + dth >= TWO_PI:
+            w_now = TWO_PI - prev_unwrap
+        _accumulate(acc, cosk, sink, w_now, sig0, sig1, sig2, sig3)
+        fw[FW_PERIOD_T] += dt * (w_now / dth if dth != 0.0 else 1.0)
+        fw[FW_TH_UNWRAP] = prev_unwrap + dth
         fw[FW_TH_PREV] = th
         if fw[FW_TH_UNWRAP] >= TWO_PI:
-            _close_period(fw, ic, cfg, acc, hist, fhist, fmean, fvar, cmean, cvar,
-                          fw[FW_TH_UNWRAP])
+            _close_period(fw, ic, cfg, acc, hist, fhist, fmean, fvar, cmean, cvar, TWO_PI)
             fw[FW_TH_UNWRAP] -= TWO_PI
+            rest = dth - w_now
+            _accumulate(acc, cosk, sink, rest, sig0, sig1, sig2, sig3)
+            fw[FW_PERIOD_T] = dt * (rest / dth)
             completed += 1
         elif fw[FW_TH_UNWRAP] < -TWO_PI:
             # running backwards a whole turn (no oscillation): restart the period
