@@ -37,7 +37,8 @@ DEFAULTS = {
     "tolerance_abs": 2e-5, "tolerance_rel": 1e-3, "frequency_tolerance": 0.002,
     "dc_tolerance": 5e-5, "max_picard": 8, "max_refine": 16, "variance_rel": 5e-3,
     "max_gate_polls": 4, "record_s": 2.0, "clamp": 300.0, "trip": 0.2,
-    "picard_harmonics": False, "polish": False, "polish_span": 0.04, "max_faults": 3, "quench_periods": 6, "max_quench": 8,
+    "picard_harmonics": False, "polish": False, "polish_span": 0.04, "max_faults": 3, "noisy_fit": False,
+    "noise_tolerance": 0.0, "quench_periods": 6, "max_quench": 8,
 }
 
 
@@ -273,6 +274,11 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
         return None
     decreasing = elo > 0 > ehi
     slope = (ehi - elo) / (hi - lo)               # from measured values, never the halved ones
+    if o["noisy_fit"]:
+        A, slope = yield from _fit_root(s, o, lo, hi, decreasing)
+        if A is None:
+            return None
+        return (yield from _record_root(s, o, A, slope, decreasing))
     flo, fhi = elo, ehi                           # Illinois' working values
     side, bisect = 0, False
     A = lo
@@ -309,10 +315,15 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
         A = yield from _polish(s, o, A, decreasing)
         if A is None:
             return None
-    # the record: converge fully at the root's target, then log the full-rate time
-    # series; if the orbit drifted (an unstable cycle held by a marginal loop), again
+    return (yield from _record_root(s, o, A, slope, decreasing))
+
+
+def _record_root(s: _Search, o: dict, A: float, slope: float, decreasing: bool = True):
+    """Converge fully at the root's target, then log the full-rate time series; if the
+    orbit drifted (an unstable cycle held by a marginal loop), again."""
     tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
     ok = False
+    e, est = None, None
     for _ in range(3):
         e, est = yield from s.evaluate(A)
         if e is None:
@@ -322,10 +333,46 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
         e = A - amplitude(est.fourier["response"]["mean"])
         # accepted only if the recorded orbit itself satisfies the root condition, to
         # within the tolerance on the root's location (|e| / |de/dA*|, local slope)
-        ok = abs(e) <= 2 * tol * max(abs(slope), 0.05)
+        ok = abs(e) <= max(2 * tol, o["noise_tolerance"]) * max(abs(slope), 0.05)
         if ok:
             break
     return {"target": A, "error": e, "estimate": est, "stable": not decreasing, "converged": ok}
+
+
+def _fit_root(s: _Search, o: dict, lo: float, hi: float, decreasing: bool):
+    """Experimental (cbc.noisy_fit, off by default; not yet better than regula falsi at
+    sigma = 0.02). With process noise single values of e are unreliable near the root: fit a line
+    through e on a grid across the bracket, then on a finer one around the fitted root
+    (the paper's surrogate, locally), and return the root and the slope."""
+    pts = []
+    for A in np.linspace(lo, hi, 5):
+        e, _ = yield from s.evaluate(float(A))
+        if e is not None:
+            pts.append((float(A), e))
+    root, slope = _line_root(pts, lo, hi)
+    if root is None:
+        return None, slope
+    w = 0.25 * (hi - lo)
+    for A in (root - 0.5 * w, root, root + 0.5 * w):
+        e, _ = yield from s.evaluate(float(A))
+        if e is not None:
+            pts.append((float(A), e))
+    near = [(a, e) for a, e in pts if abs(a - root) <= w]
+    root2, slope2 = _line_root(near if len(near) >= 3 else pts, lo, hi)
+    if root2 is None or (slope2 < 0) != decreasing:
+        return root, slope
+    return root2, slope2
+
+
+def _line_root(pts, lo, hi):
+    if len(pts) < 2:
+        return None, 0.0
+    a, e = np.array(pts).T
+    slope, icpt = np.polyfit(a, e, 1)
+    if slope == 0:
+        return None, 0.0
+    root = -icpt / slope
+    return (float(root), float(slope)) if lo <= root <= hi else (None, float(slope))
 
 
 def _point_doc(index, key, s: _Search, r: dict, o: dict) -> dict:
