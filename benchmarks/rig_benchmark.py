@@ -29,7 +29,6 @@ import os
 import platform
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -43,6 +42,7 @@ import numpy as np  # noqa: E402
 import rig_sim  # noqa: E402
 from rig_sim.device import register_map as M  # noqa: E402
 from rig_sim.firmware.board import Board, RigOptions  # noqa: E402
+from rig_sim.harness import PtyPair, RigProcess  # noqa: E402
 
 PLUGIN_SOURCE = '''
 import numpy as np
@@ -111,43 +111,6 @@ def bench_realtime(quick: bool, tmp: Path) -> dict:
 
 
 # ---- serving --------------------------------------------------------------------------------------
-class Cable:
-    def __init__(self, tmp: Path):
-        self.a, self.b = str(tmp / "ttyA"), str(tmp / "ttyB")
-        for p in (self.a, self.b):
-            if os.path.lexists(p):
-                os.unlink(p)
-        self.proc = subprocess.Popen(["socat", f"pty,raw,echo=0,link={self.a}", f"pty,raw,echo=0,link={self.b}"],
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + 10
-        while not (os.path.exists(self.a) and os.path.exists(self.b)):
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError("socat did not create the pty pair")
-            time.sleep(0.02)
-
-    def close(self):
-        self.proc.terminate()
-        self.proc.wait(timeout=5)
-
-
-class Rig:
-    def __init__(self, *args: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "rig_sim.cli", "serve", *args], cwd=REPO,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        line = self.proc.stdout.readline()
-        if not line:
-            raise RuntimeError(f"rig-sim did not start: {self.proc.stderr.read().strip()}")
-        self.endpoints = json.loads(line)["endpoints"]
-
-    def close(self):
-        self.proc.terminate()
-        try:
-            self.proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-
-
 def _stats(lat_s: list[float]) -> dict:
     ms = [x * 1e3 for x in lat_s]
     return {"n": len(ms), "p50_ms": round(percentile(ms, 50), 3), "p99_ms": round(percentile(ms, 99), 3),
@@ -225,8 +188,8 @@ def bench_round_trip(quick: bool, tmp: Path) -> dict:
     from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 
     log("(b) round trips")
-    cable = Cable(tmp)
-    rig = Rig("--rig", "flutter", "--noise", "0.02", "--port", "0", "--serial", cable.b)
+    cable = PtyPair(tmp)
+    rig = RigProcess("--rig", "flutter", "--noise", "0.02", "--port", "0", "--serial", cable.b, cwd=REPO)
     try:
         port = int(rig.endpoints[0].rsplit(":", 1)[1])
         out = {"rig": "flutter, real time, noise 0.02", "client": "pymodbus sync client"}
@@ -296,9 +259,9 @@ def bench_ring(quick: bool, tmp: Path) -> dict:
         if not any(alive.values()):
             break
         log(f"(c) ring pull at time-scale {k}")
-        cable = Cable(tmp)
-        rig = Rig("--rig", "flutter", "--noise", "0.02", "--time-scale", str(k), "--port", "0",
-                  "--serial", cable.b)
+        cable = PtyPair(tmp)
+        rig = RigProcess("--rig", "flutter", "--noise", "0.02", "--time-scale", str(k), "--port", "0",
+                         "--serial", cable.b, cwd=REPO)
         try:
             time.sleep(0.3)
             trial = {"time_scale": k, "nominal_sps": int(k * rate)}

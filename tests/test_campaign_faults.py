@@ -3,7 +3,6 @@ controller, an amplitude trip, and a campaign over Modbus RTU through a pty pair
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -112,7 +111,7 @@ def test_sigkill_then_resume_loses_and_duplicates_nothing(tmp_path, truth):
 
 
 def test_rig_restart_mid_campaign_reconnects_and_goes_on(tmp_path, truth, rig_process):
-    from tests.conftest import RigProcess
+    from rig_sim.harness import RigProcess
     rig = rig_process("--rig", "flutter", "--lockstep", "--seed", "3")
     port = rig.port
     out = tmp_path / "restart.h5"
@@ -127,7 +126,6 @@ def test_rig_restart_mid_campaign_reconnects_and_goes_on(tmp_path, truth, rig_pr
         rig2.stop()
     camp = _check_points(out, truth)
     assert len(camp.points) == 6
-    kinds = [e.get("kind") or e.get("type") for e in camp.events]
     texts = " ".join(str(e) for e in camp.events)
     assert "lost" in texts and "restored" in texts, camp.events
     assert "interrupted" in texts                   # the interrupted airspeed is marked

@@ -39,7 +39,7 @@ from cbc_controller.messages import PlanContext
 from cbc_controller.plans.forced import DEFAULTS, oscillator_plan
 from rig_sim.physics.truth import oscillator_scurve
 
-from tests.conftest import RigProcess
+from rig_sim.harness import RigProcess
 
 FREQS = (20.0, 23.0, 26.0)
 PHI_TOL = 0.02            # forcing within 2 % of the truth at the measured amplitude

@@ -14,20 +14,18 @@ with `struct`, independently of the rig's own codec.
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import re
 import shutil
 import struct
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
 from rig_sim.device import register_map as M
+from rig_sim.harness import PtyPair, RigProcess
 
 REPO = Path(__file__).resolve().parents[1]
 MBPOLL = shutil.which("mbpoll")
@@ -44,53 +42,10 @@ def f32_words(value: float) -> list[int]:
     return list(struct.unpack(">HH", struct.pack(">f", value)))
 
 
-# ---- processes ----------------------------------------------------------------------------
-class _Socat:
-    """A null-modem cable: two linked ptys (conftest's pty_pair, but for a module-scoped rig)."""
-
-    def __init__(self, tmp: Path):
-        self.a, self.b = str(tmp / "ttyA"), str(tmp / "ttyB")
-        self.proc = subprocess.Popen([SOCAT, f"pty,raw,echo=0,link={self.a}", f"pty,raw,echo=0,link={self.b}"],
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        deadline = time.monotonic() + 10
-        while not (os.path.exists(self.a) and os.path.exists(self.b)):
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"socat did not create the pty pair: {self.proc.stderr.read()!r}")
-            time.sleep(0.02)
-
-    def close(self):
-        self.proc.terminate()
-        self.proc.wait(timeout=5)
-
-
-class _Rig:
-    """`rig-sim serve ...` in a subprocess, ready once it has printed its endpoints."""
-
-    def __init__(self, *args: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "rig_sim.cli", "serve", *args], cwd=REPO,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        line = self.proc.stdout.readline()
-        if not line:
-            raise RuntimeError(f"rig-sim did not start: {self.proc.stderr.read().strip()}")
-        self.endpoints = json.loads(line)["endpoints"]
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def close(self):
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-
-
 class Mbpoll:
     """mbpoll aimed at one rig endpoint; every call is one mbpoll process (`-1`)."""
 
-    def __init__(self, transport: str, rig: _Rig, pty: str | None = None):
+    def __init__(self, transport: str, rig: RigProcess, pty: str | None = None):
         self.transport, self.rig = transport, rig
         if transport == "tcp":
             port = rig.endpoints[0].rsplit(":", 1)[1]
@@ -142,12 +97,12 @@ def _serve(request, tmp_path_factory, rig: str):
     transport = request.param
     if transport == "rtu" and SOCAT is None:
         pytest.skip("socat is not installed (apt-get install socat; .ci/run does)")
-    cable = _Socat(tmp_path_factory.mktemp(f"{rig}-pty")) if transport == "rtu" else None
+    cable = PtyPair(tmp_path_factory.mktemp(f"{rig}-pty"), socat=SOCAT) if transport == "rtu" else None
     try:
         if transport == "tcp":
-            proc = _Rig("--rig", rig, "--port", "0")
+            proc = RigProcess("--rig", rig, "--port", "0", cwd=REPO)
         else:
-            proc = _Rig("--rig", rig, "--no-tcp", "--serial", cable.b)
+            proc = RigProcess("--rig", rig, "--no-tcp", "--serial", cable.b, cwd=REPO)
     except BaseException:
         if cable:
             cable.close()

@@ -144,7 +144,7 @@ def test_bad_writes_answer_exceptions_and_change_nothing(rig_process):
             c.write_words(address, words)
         assert e.value.code == code, (address, words)
     # a multi-register write with one bad value changes none of the others
-    kp, airspeed = M.BY_NAME["kp"], M.BY_NAME["airspeed"]
+    kp = M.BY_NAME["kp"]
     words = M.f32_words(500.0) + M.f32_words(3.0) + M.f32_words(2.0) + M.f32_words(99.0)
     with pytest.raises(RigError) as e:
         c.write_words(kp.address, words)         # kp, kd, frequency, airspeed(bad)

@@ -37,7 +37,7 @@ DEFAULTS = {
     "tolerance_abs": 2e-5, "tolerance_rel": 1e-3, "frequency_tolerance": 0.002,
     "dc_tolerance": 5e-5, "max_picard": 8, "max_refine": 16, "variance_rel": 5e-3,
     "max_gate_polls": 4, "record_s": 2.0, "clamp": 300.0, "trip": 0.2,
-    "picard_harmonics": False, "polish": False, "polish_span": 0.04, "max_faults": 3, "noisy_fit": False,
+    "picard_harmonics": False, "max_faults": 3, "noisy_fit": False,
     "noise_tolerance": 0.0, "quench_periods": 6, "max_quench": 8,
 }
 
@@ -136,18 +136,16 @@ def flutter_plan(config: dict):
                          "clamp": o["clamp"], "trip": o["trip"], "airspeed": airspeeds[0],
                          "frequency": o["frequency_guess"], **_targets(0.0, 0.0)})
         counter = {"index": len(ctx.previous)}
-        prev_roots: list[float] = []
         faults_in_a_row = 0
         for V in airspeeds:
             keys = [k for k in ctx.done if k.startswith(f"V={V:.4f}/")]
             if keys and len(keys) >= 2:
                 continue                                 # this airspeed is in the file
-            roots = None
             for attempt in range(3):
                 s = _Search(V, o)
                 s.emit_root = _root_emitter(ctx, counter, s, o)
                 try:
-                    roots = yield from _search_airspeed(s, o, prev_roots)
+                    yield from _search_airspeed(s, o)      # emits each root as it is found
                     faults_in_a_row = 0
                     break
                 except RigRestarted as exc:
@@ -161,7 +159,6 @@ def flutter_plan(config: dict):
             if faults_in_a_row >= o["max_faults"]:
                 yield Emit("note", {"text": f"{faults_in_a_row} faults in a row: campaign stopped"})
                 break
-            prev_roots = [r["target"] for r in roots] if roots else prev_roots
         yield Disarm()
 
     return plan
@@ -183,14 +180,14 @@ def _root_emitter(ctx, counter, s, o):
     return emit
 
 
-def _search_airspeed(s: _Search, o: dict, prev_roots: list[float]):
-    """Generator: the roots of e(A) at s.V, each refined; returns a list of root dicts.
+def _search_airspeed(s: _Search, o: dict):
+    """Generator: find, refine and emit the roots of e(A) at s.V; returns them.
 
     The scan goes upward from a small target amplitude, from rest, and refines each
     bracket as soon as it appears, so the target never jumps far below the orbit the
     rig is on (a phase-locked target needs the orbit to encircle its centre). The
     scan ends at the stable cycle (beyond it e only grows: the model has no further
-    cycle there). `prev_roots` is kept for a smarter grid later; unused for now.
+    cycle there).
     """
     yield Configure({"airspeed": s.V})
     yield from _quench(o)
@@ -235,23 +232,6 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
                 e, _ = yield from s.evaluate(A, quick=True)   # back above the root, go on
         last = (A, e) if e is not None else None
     return False
-
-
-def _polish(s: _Search, o: dict, A: float, decreasing: bool):
-    d = o["polish_span"] * A
-    for probe in (A - d, A + d):
-        e, _ = yield from s.evaluate(probe)
-        if e is None:
-            return None
-    near = [(a, v[0]) for a, v in s.evals.items() if abs(a - A) <= 1.5 * d and v[0] is not None]
-    if len(near) < 3:
-        return A
-    a, e = np.array(near).T
-    slope, icpt = np.polyfit(a, e, 1)
-    if slope == 0 or (slope < 0) != decreasing:
-        return A                                   # the fit disagrees with the bracket: keep it
-    root = -icpt / slope
-    return float(root) if abs(root - A) <= 1.5 * d else A
 
 
 def _quench(o: dict):
@@ -308,13 +288,6 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
             A = hi - ehi * (hi - lo) / (ehi - elo)     # the root inside the final bracket
             break
         bisect = (hi - lo) > 0.5 * width
-    # polish: with process noise a single e can have the wrong sign, and bracketing
-    # trusts signs. Fit a line through steady evaluations around the root (the
-    # paper's surrogate idea, locally) and take its root.
-    if o["polish"]:
-        A = yield from _polish(s, o, A, decreasing)
-        if A is None:
-            return None
     return (yield from _record_root(s, o, A, slope, decreasing))
 
 

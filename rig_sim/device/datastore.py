@@ -139,7 +139,7 @@ class RigRegisters:
             if name == "advance":
                 return self.advance_value
             return b.get(_SETTING[name])
-        ic, fw, cfg = b.ic, b.fw, b.cfg
+        ic, fw = b.ic, b.fw
         if name == "status":
             return self.status_word()
         if name == "fault_code":
