@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
@@ -36,3 +37,17 @@ def pty_pair(tmp_path):
     pair = PtyPair(tmp_path)
     yield pair
     pair.close()
+
+
+@pytest.fixture(scope="session")
+def lee2020_dir() -> Path:
+    """The lee2020 wind-tunnel data (a directory holding model2/): $LEE2020_DIR, else
+    <repo>/../shared/data/lee2020, else /work/shared/data/lee2020. The data is never copied
+    into the repository, so where none of these exists the tests that need it skip."""
+    candidates = [os.environ.get("LEE2020_DIR"), REPO.parent / "shared" / "data" / "lee2020",
+                  "/work/shared/data/lee2020"]
+    for c in candidates:
+        if c and (Path(c) / "model2").is_dir():
+            return Path(c)
+    pytest.skip("lee2020 data not found (set LEE2020_DIR to the directory holding model2/; "
+                f"looked in: {', '.join(str(c) for c in candidates if c)})")
