@@ -456,30 +456,45 @@ def trace_forced(model: UDE, *, freq_hz: float, a_range, amp_max: float, scales,
     return _assemble(prob, "oscillator", seq, tans, folds, reason, omega=omega)
 
 
-def orbit_at(model: UDE, branch: Branch, param: float, stable: bool, *, scales, n: int = 200):
-    """The model's periodic orbit at ``param`` on the part of ``branch`` with the given
-    stability, solved exactly (Newton at fixed parameter from the nearest branch point).
-    Returns (samples (n, n_state), period) or None."""
-    if branch.param.size == 0:
+def orbit_at(model: UDE, branch: Branch, param: float, stable: bool | None, *, scales,
+             near: float | None = None, n: int = 200) -> dict | None:
+    """The model's periodic orbit at ``param`` where ``branch`` crosses it with the given
+    stability (None: any), the crossing nearest in amplitude to ``near``; solved exactly by
+    Newton at fixed parameter from the crossing interpolated between two branch points.
+
+    Returns {"samples" (n, n_state), "period", "amplitude", "stable"} or None when the
+    branch does not cross ``param`` with that stability (or the solve fails).
+    """
+    par = branch.param
+    cands = []
+    for k in range(len(par) - 1):
+        lo, hi = par[k], par[k + 1]
+        if lo == hi or (lo - param) * (hi - param) > 0:
+            continue
+        w = (param - lo) / (hi - lo)
+        s = bool(branch.stable[k] if w < 0.5 else branch.stable[k + 1])
+        if stable is not None and s != stable:
+            continue
+        amp = (1 - w) * branch.amplitude[k] + w * branch.amplitude[k + 1]
+        cands.append((abs(amp - near) if near is not None else 0.0, k, w))
+    if not cands:
         return None
-    mask = branch.stable == stable
-    if not mask.any():
-        return None
-    cand = np.nonzero(mask)[0]
-    k = int(cand[np.argmin(np.abs(branch.param[cand] - param))])
-    ns = model.n_state
+    _, k, w = min(cands)
+    y0 = (1 - w) * branch.y0[k] + w * branch.y0[k + 1]
+    T = (1 - w) * branch.period[k] + w * branch.period[k + 1]
     if branch.system == "flutter":
-        su = np.concatenate([np.asarray(scales, float), [branch.period[k], max(1.0, param)]])
+        su = np.concatenate([np.asarray(scales, float), [T, max(1.0, abs(param))]])
         prob = _Autonomous(model, su, n)
-        us = np.concatenate([branch.y0[k], [branch.period[k], param]]) / su
+        us = np.concatenate([y0, [T, param]]) / su
     else:
         su = np.concatenate([np.asarray(scales, float), [max(abs(param), 1e-9)]])
         prob = _Forced(model, su, branch.omega, n)
-        us = np.concatenate([branch.y0[k], [param]]) / su
+        us = np.concatenate([y0, [param]]) / su
     a = np.zeros(us.size)
     a[prob.par_index] = 1.0
     pt = _newton(prob, us, a, us.copy())
     if pt is None:
         return None
-    y0, T, _ = prob.unpack(pt.us)
-    return pt.ys[:, :ns], float(T)
+    rec = _record(prob, pt)
+    return {"samples": pt.ys[:, :model.n_state], "period": rec["period"],
+            "amplitude": rec["amplitude"], "stable": bool(rec["stable"])}

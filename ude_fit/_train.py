@@ -32,7 +32,7 @@ import optax
 
 from ._flow import rk4_orbit
 from ._identify import TrainingData, residual_forces
-from ._models import UDE, Drive, MLPCorrection, feature_scaling
+from ._models import UDE, MLPCorrection, feature_scaling
 
 
 class Diverged(RuntimeError):

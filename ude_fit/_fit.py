@@ -1,0 +1,252 @@
+"""The fitting pipeline: mechanistic identification, several UDE starts, the adequacy check.
+
+``fit`` is a function of a dataset and options; it returns a :class:`FitResult` holding
+both models, their traced diagrams, the metrics side by side and a record of every start.
+
+Adequacy (the paper found single trainings often land in poor local minima): a start is
+*adequate* when its diagram has an orbit at every measured point with the measured
+stability (nothing missed), its branch RMS error is below the mechanistic model's, and
+it is within ``adequacy_factor`` times the best start's error (or under
+``adequacy_floor``, whichever is larger). The kept start is the adequate one with the
+smallest branch error; if none is adequate, the one with the fewest missed points and
+then the smallest error, and the result says so.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import jax
+import numpy as np
+
+from ._continuation import Branch, trace_flutter, trace_forced
+from ._data import DataError, OrbitDataset
+from ._gp import fit_gp
+from ._identify import TrainingData, identify, residual_forces, training_data
+from ._metrics import branch_metrics, estimate_from_data, locations, with_reference
+from ._models import UDE
+from ._train import Diverged, TrainConfig, train_ude
+
+APPROXIMATORS = ("nn", "gp")
+TRAININGS = ("trajectory", "periodic")
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    system: str
+    approximator: str = "nn"
+    training: str = "periodic"
+    starts: int = 5
+    seed: int = 0
+    samples: int = 32                 # samples per period of each averaged orbit
+    train: TrainConfig = TrainConfig()
+    adequacy_factor: float = 2.0
+    adequacy_floor: float = 0.01
+    gp_restarts: int = 2
+
+    def __post_init__(self):
+        if self.system not in ("flutter", "oscillator"):
+            raise ValueError(f"system must be flutter or oscillator, not {self.system!r}")
+        if self.approximator not in APPROXIMATORS:
+            raise ValueError(f"approximator must be nn or gp, not {self.approximator!r}")
+        if self.training not in TRAININGS:
+            raise ValueError(f"training must be trajectory or periodic, not {self.training!r}")
+        if self.starts < 1:
+            raise ValueError(f"starts must be at least 1, not {self.starts}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class FitResult:
+    options: FitOptions
+    mechanistic: UDE
+    ude: UDE | None
+    identification: dict
+    diagrams: dict              # {"mechanistic": {...}, "ude": {...}}: key -> Branch
+    metrics: dict               # {"mechanistic", "ude", "starts", "data", ...}
+    scales: np.ndarray
+    ranges: dict
+    starts: list = field(default_factory=list)
+
+
+# ---------------------------------------------------------------------------------------
+# diagrams
+# ---------------------------------------------------------------------------------------
+
+def diagram_ranges(ds: OrbitDataset) -> dict:
+    """Parameter and amplitude windows for tracing, from the data's own extent."""
+    A = ds.amplitudes()
+    if ds.system == "flutter":
+        V = ds.parameters()
+        span = max(np.ptp(V), 0.1 * V.max())
+        return {"v_range": [max(0.5, V.min() - 1.5 * span), V.max() + 0.75 * span],
+                "amp_max": 1.4 * float(A.max())}
+    out = {}
+    for f in ds.frequencies_group():
+        sub = ds.at_frequency(f)
+        out[f"{f:g}"] = {"freq_hz": float(f), "a_range": [0.0, 1.3 * float(sub.parameters().max())],
+                         "amp_max": 1.5 * float(sub.amplitudes().max())}
+    return {"frequencies": out}
+
+
+def trace_diagram(model: UDE, ranges: dict, scales) -> dict:
+    """The model's branches: {"flutter": Branch} or {freq_hz: Branch}."""
+    if model.system == "flutter":
+        return {"flutter": trace_flutter(model, v_range=ranges["v_range"],
+                                         amp_max=ranges["amp_max"], scales=scales)}
+    out = {}
+    for key, r in ranges["frequencies"].items():
+        lo, hi = r["a_range"]
+        out[r["freq_hz"]] = trace_forced(model, freq_hz=r["freq_hz"],
+                                         a_range=(max(lo, 0.01 * hi), hi),
+                                         amp_max=r["amp_max"], scales=scales)
+    return out
+
+
+def _evaluate(model, ds, ranges, scales, reference, ref_source) -> tuple[dict, dict]:
+    diagram = trace_diagram(model, ranges, scales)
+    m = branch_metrics(model, diagram, ds, scales=scales)
+    m.update(with_reference(locations(diagram), reference, ref_source))
+    return diagram, m
+
+
+# ---------------------------------------------------------------------------------------
+# the pipeline
+# ---------------------------------------------------------------------------------------
+
+def _is_adequate(m, best_rms, mech_rms, opts) -> bool:
+    if m is None or m["branch_rms"] is None or m["missed"] > 0:
+        return False
+    if mech_rms is not None and m["branch_rms"] >= mech_rms:
+        return False
+    return m["branch_rms"] <= max(opts.adequacy_factor * best_rms, opts.adequacy_floor)
+
+
+def _train_start(mech_model, data: TrainingData, opts: FitOptions, k: int, key, progress):
+    if opts.approximator == "nn":
+        return train_ude(mech_model, data, key=key, cfg=opts.train, training=opts.training,
+                         progress=progress)
+    Z, R = residual_forces(mech_model, data)
+    gp, info = fit_gp(Z, R, seed=opts.seed + k, restarts=opts.gp_restarts)
+    if not np.all(np.isfinite(np.asarray(gp.alpha))):
+        raise Diverged("GP fit produced non-finite weights")
+    return UDE(mech_model.mech, gp.mean_only()), {"training": "accelerations", **{
+        k_: v for k_, v in info.items() if isinstance(v, (int, float, str, bool))}}
+
+
+def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
+        progress=None) -> FitResult:
+    """Identify the mechanistic model, train ``opts.starts`` UDEs, keep the best adequate one.
+
+    ``reference``: known Hopf/fold ({"hopf": V, "fold": V}, e.g. the truth) for the error
+    figures; without it they are estimated from the data and marked as such.
+    ``progress(event=..., **fields)`` is called along the way.
+    """
+    if len(ds) == 0:
+        raise DataError("the dataset is empty")
+    if ds.system != opts.system:
+        raise DataError(f"the data is {ds.system} data, not {opts.system}")
+    say = progress or (lambda **kw: None)
+    t_start = time.perf_counter()
+    data = training_data(ds, n=opts.samples)
+    scales = np.asarray(data.y_scale)
+    ranges = diagram_ranges(ds)
+    if reference:
+        ref, ref_source = dict(reference), "given"
+    else:
+        ref, ref_source = estimate_from_data(ds), "estimated from the measured points"
+
+    say(event="stage", stage="mechanistic identification")
+    mech, ident = identify(data, opts.system)
+    mech_model = UDE(mech)
+    say(event="stage", stage="mechanistic diagram")
+    mech_diag, mech_m = _evaluate(mech_model, ds, ranges, scales, ref, ref_source)
+    say(event="model", which="mechanistic", metrics=mech_m)
+
+    keys = jax.random.split(jax.random.PRNGKey(opts.seed), opts.starts)
+    starts = []
+    for k in range(opts.starts):
+        t0 = time.perf_counter()
+        say(event="start", start=k + 1, starts=opts.starts)
+        rec = {"start": k + 1, "seed": opts.seed, "approximator": opts.approximator}
+        try:
+            model, info = _train_start(
+                mech_model, data, opts, k, keys[k],
+                (lambda **kw: say(event="train", start=k + 1, **kw)) if progress else None)
+            rec["train_seconds"] = time.perf_counter() - t0
+            diag, m = _evaluate(model, ds, ranges, scales, ref, ref_source)
+            rec.update(status="ok", loss=info.get("final_loss"), info=info, metrics=m)
+            rec["_model"], rec["_diagram"] = model, diag
+        except Diverged as exc:
+            rec.update(status="dropped", reason=str(exc), metrics=None)
+        rec["seconds"] = time.perf_counter() - t0
+        say(event="start_done", start=k + 1, record=rec)
+        starts.append(rec)
+
+    ok = [s for s in starts if s["status"] == "ok" and s["metrics"]["branch_rms"] is not None]
+    best_rms = min((s["metrics"]["branch_rms"] for s in ok if s["metrics"]["missed"] == 0),
+                   default=np.inf)
+    for s in starts:
+        s["adequate"] = (s["status"] == "ok"
+                         and _is_adequate(s["metrics"], best_rms, mech_m["branch_rms"], opts))
+    best = None
+    if ok:
+        best = min(ok, key=lambda s: (not s["adequate"], s["metrics"]["missed"],
+                                      s["metrics"]["branch_rms"]))
+    metrics = {
+        "system": opts.system,
+        "approximator": opts.approximator,
+        "training": opts.training if opts.approximator == "nn" else "accelerations",
+        "data": {"points": len(ds), "sources": list(ds.sources),
+                 "stable": int(sum(1 for o in ds if o.stable is True)),
+                 "unstable": int(sum(1 for o in ds if o.stable is False)),
+                 "max_amplitude": float(ds.amplitudes().max())},
+        "mechanistic": {**mech_m, "parameters": ident["parameters"],
+                        "std_error": ident["std_error"]},
+        "ude": None if best is None else {**best["metrics"], "start": best["start"],
+                                          "adequate": best["adequate"]},
+        "starts": {"requested": opts.starts,
+                   "completed": len(ok),
+                   "dropped": [{"start": s["start"], "reason": s["reason"]}
+                               for s in starts if s["status"] == "dropped"],
+                   "adequate": int(sum(s["adequate"] for s in starts)),
+                   "kept": None if best is None else best["start"],
+                   "criterion": {"missed": 0, "below_mechanistic": True,
+                                 "factor_of_best": opts.adequacy_factor,
+                                 "floor": opts.adequacy_floor},
+                   "records": [_public(s) for s in starts]},
+        "ranges": ranges,
+        "seconds": time.perf_counter() - t_start,
+    }
+    return FitResult(options=opts, mechanistic=mech_model,
+                     ude=None if best is None else best["_model"], identification=ident,
+                     diagrams={"mechanistic": mech_diag,
+                               "ude": None if best is None else best["_diagram"]},
+                     metrics=metrics, scales=scales, ranges=ranges, starts=starts)
+
+
+def _public(s: dict) -> dict:
+    out = {k: v for k, v in s.items() if not k.startswith("_") and k != "metrics"}
+    m = s.get("metrics")
+    if m:
+        out["metrics"] = {k: m[k] for k in ("branch_rms", "branch_max", "missed",
+                                            "trajectory_rms", "hopf", "fold")}
+    info = out.get("info")
+    if info:
+        out["info"] = {k: v for k, v in info.items() if isinstance(v, (int, float, str, bool))}
+    return out
+
+
+def diagram_to_dict(diagram: dict | None) -> dict | None:
+    if diagram is None:
+        return None
+    return {str(k): b.to_dict() for k, b in diagram.items()}
+
+
+def diagram_from_dict(d: dict | None) -> dict | None:
+    if d is None:
+        return None
+    return {(k if k == "flutter" else float(k)): Branch.from_dict(b) for k, b in d.items()}

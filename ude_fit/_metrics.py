@@ -1,0 +1,157 @@
+"""How well a model's bifurcation diagram matches the measured orbits (DESIGN.md definitions).
+
+* Branch amplitude error: for every measured orbit, the model's orbit at the same parameter
+  on the part of the diagram with the measured stability (the crossing nearest in
+  amplitude), solved exactly, and |model amplitude - measured amplitude| divided by the
+  largest measured amplitude. RMS and max over the points found; a point the model has no
+  orbit for (no crossing with that stability) is *missed*.
+* Hopf and fold: the model's locations, and their errors against a reference (the truth
+  where a test knows it, otherwise an estimate from the measured points, which says so).
+* Trajectory error: the model orbit and the measured one over one period, after the phase
+  shift that aligns them best, RMS over the positions, each divided by its largest
+  measured amplitude; then RMS over the points.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._continuation import Branch, orbit_at
+from ._data import OrbitDataset
+from ._flow import K_HARMONICS, harmonics
+
+
+def _series(coeffs):
+    """(n_coord, 15) -> complex (n_coord, K) with x = sum Re(C_k e^{i k phi})."""
+    c = np.asarray(coeffs, float)
+    return c[:, 1:K_HARMONICS + 1] - 1j * c[:, K_HARMONICS + 1:], c[:, 0]
+
+
+def aligned_rms(model_coeffs, data_coeffs, scale) -> float:
+    """RMS over one period of (model - data) / scale after the best phase shift of the model
+    (grid of 720 shifts, then a parabolic refinement); all coordinates together."""
+    Cm, dm = _series(model_coeffs)
+    Cd, dd = _series(data_coeffs)
+    k = np.arange(1, K_HARMONICS + 1)
+    w = 1.0 / np.asarray(scale, float)[:, None]
+
+    def err(s):
+        diff = (Cm * np.exp(1j * k * s) - Cd) * w
+        # mean over a period of a Fourier series: DC^2 + sum |C_k|^2 / 2
+        return (np.sum(((dm - dd) * w[:, 0]) ** 2) + 0.5 * np.sum(np.abs(diff) ** 2)) / len(w)
+
+    grid = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    e = np.array([err(s) for s in grid])
+    j = int(np.argmin(e))
+    h = grid[1] - grid[0]
+    a, b, c = e[j - 1], e[j], e[(j + 1) % len(e)]
+    den = a - 2 * b + c
+    s = grid[j] + (0.5 * h * (a - c) / den if den > 0 else 0.0)
+    return float(np.sqrt(max(min(err(s), b), 0.0)))
+
+
+def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> dict:
+    """Branch amplitude and trajectory errors of ``model`` (whose traced branches are
+    ``diagram``: {"flutter": Branch} or {frequency_hz: Branch}) against the dataset."""
+    amps = ds.amplitudes()
+    a_max = float(amps.max())
+    n_pos = model.mech.n_dof
+    pos_scale = np.array([max(np.hypot(o.coeffs[i][1], o.coeffs[i][K_HARMONICS + 1])
+                              for o in ds.orbits) for i in range(n_pos)])
+    points = []
+    for o in ds.orbits:
+        branch = _branch_for(diagram, o)
+        rec = {"parameter": o.parameter, "frequency": o.frequency, "measured": o.amplitude,
+               "stable": o.stable}
+        sol = None
+        if branch is not None:
+            sol = orbit_at(model, branch, o.parameter, o.stable, scales=scales, near=o.amplitude)
+        if sol is None or (o.stable is not None and sol["stable"] != o.stable):
+            rec.update(model=None, error=None, trajectory=None, missed=True)
+        else:
+            e = abs(sol["amplitude"] - o.amplitude) / a_max
+            hc = np.asarray(harmonics(sol["samples"][:, :n_pos])).T    # (n_pos, 15)
+            tr = aligned_rms(hc, np.asarray(o.coeffs)[:n_pos], pos_scale)
+            rec.update(model=sol["amplitude"], error=e, trajectory=tr, missed=False,
+                       model_stable=sol["stable"])
+        points.append(rec)
+    out = _summary(points)
+    out["points"] = points
+    if ds.system == "oscillator":
+        out["per_frequency"] = {
+            f"{f:g}": _summary([p for p in points if round(p["frequency"], 6) == f])
+            for f in ds.frequencies_group()}
+    return out
+
+
+def _summary(points: list) -> dict:
+    errs = np.array([p["error"] for p in points if not p["missed"]])
+    traj = np.array([p["trajectory"] for p in points if not p["missed"]])
+    return {"branch_rms": float(np.sqrt(np.mean(errs ** 2))) if errs.size else None,
+            "branch_max": float(errs.max()) if errs.size else None,
+            "missed": int(sum(p["missed"] for p in points)),
+            "trajectory_rms": float(np.sqrt(np.mean(traj ** 2))) if traj.size else None}
+
+
+def _branch_for(diagram: dict, o) -> Branch | None:
+    if "flutter" in diagram:
+        return diagram["flutter"]
+    for f, b in diagram.items():
+        if abs(float(f) - o.frequency) <= 1e-6 * max(1.0, o.frequency):
+            return b
+    return None
+
+
+def locations(diagram: dict) -> dict:
+    """Hopf and fold parameters of a traced diagram (None where there is none)."""
+    if "flutter" in diagram:
+        b = diagram["flutter"]
+        hopf = b.hopf["param"] if b.hopf else None
+        folds = sorted(f["param"] for f in b.folds)
+        return {"hopf": hopf, "fold": folds[0] if folds else None, "folds": folds}
+    return {"hopf": None, "fold": None,
+            "folds": {f"{float(f):g}": sorted(x["param"] for x in b.folds)
+                      for f, b in diagram.items()}}
+
+
+def estimate_from_data(ds: OrbitDataset) -> dict:
+    """Hopf and fold airspeeds estimated from the measured aerofoil points alone.
+
+    Hopf: near a Hopf point the squared amplitude is linear in the airspeed, so a straight
+    line through (V, A^2) of the smaller half of the unstable points, extrapolated to A = 0.
+    Fold: the vertex of a parabola V(A) through the points around the smallest airspeed.
+    Either is None where the data cannot support it. Rough: for reporting when no truth.
+    """
+    if ds.system != "flutter" or len(ds.orbits) < 3:
+        return {"hopf": None, "fold": None}
+    V, A = ds.parameters(), ds.amplitudes()
+    known = ds.known_stability()
+    out = {"hopf": None, "fold": None}
+    unst = np.nonzero(known & ~np.array([bool(o.stable) for o in ds.orbits]))[0]
+    if unst.size >= 2:
+        idx = unst[np.argsort(A[unst])][:max(2, unst.size // 2 + 1)]
+        if np.ptp(V[idx]) > 0:
+            c = np.polyfit(V[idx], A[idx] ** 2, 1)
+            if c[0] != 0:
+                out["hopf"] = float(-c[1] / c[0])
+    order = np.argsort(V)[:min(5, len(V))]
+    if np.ptp(A[order]) > 0 and len(order) >= 3:
+        c = np.polyfit(A[order], V[order], 2)
+        if c[0] > 0:
+            a_star = -c[1] / (2 * c[0])
+            if A[order].min() <= a_star <= A[order].max():
+                out["fold"] = float(np.polyval(c, a_star))
+    return out
+
+
+def with_reference(loc: dict, reference: dict, source: str) -> dict:
+    """Hopf/fold entries {"model", "reference", "error", "reference_source"}."""
+    out = {}
+    for key in ("hopf", "fold"):
+        m, r = loc.get(key), reference.get(key)
+        out[key] = {"model": m, "reference": r,
+                    "error": (m - r) if (m is not None and r is not None) else None,
+                    "reference_source": source if r is not None else None}
+    if isinstance(loc.get("folds"), dict):
+        out["folds"] = loc["folds"]
+    return out
