@@ -60,3 +60,35 @@ def test_supercritical_variant_has_no_fold():
     assert r["hopf_V"] == pytest.approx(eigen_hopf(p)[0], rel=1e-6)
     assert r["hopf_subcritical"] is False
     assert r["fold_V"] is None and r["fold_amplitude_h"] is None
+
+
+# ---- ude_fit's own continuation against AUTO-07p --------------------------------------------
+
+VARIANT = dict(NOMINAL, c_h=20.0, k_alpha2=600.0, k_alpha3=3000.0)
+
+
+@pytest.fixture(scope="module")
+def variant():
+    return auto_flutter_reference(VARIANT, v_range=(5.0, 40.0))
+
+
+@pytest.mark.parametrize("which", ["nominal", "variant"])
+def test_ude_fit_continuation_matches_auto(which, nominal, variant):
+    import numpy as np
+
+    from ude_fit import UDE, flutter_qs, hopf_point, trace_flutter
+    params, ref = (NOMINAL, nominal) if which == "nominal" else (VARIANT, variant)
+    model = UDE(flutter_qs(**params))
+    hopf = hopf_point(model, (5.0, 40.0))
+    assert hopf["param"] == pytest.approx(ref["hopf_V"], rel=1e-4)
+    assert hopf["frequency"] == pytest.approx(ref["hopf_freq_hz"], rel=1e-4)
+    branch = trace_flutter(model, v_range=(5.0, 40.0), amp_max=0.12,
+                           scales=np.array([0.02, 0.1, 0.3, 1.5]))
+    assert len(branch.folds) == 1
+    assert branch.folds[0]["param"] == pytest.approx(ref["fold_V"], rel=1e-4)
+    # the fold's first-harmonic heave amplitude as well
+    assert branch.folds[0]["amplitude"] == pytest.approx(
+        ref["fold_amplitude_h_first_harmonic"], rel=1e-3)
+    # stability changes exactly at the fold: unstable between Hopf and fold, stable beyond
+    k = int(np.argmin(branch.param))
+    assert not branch.stable[1:k - 1].any() and branch.stable[k + 2:].all()

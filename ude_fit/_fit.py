@@ -25,8 +25,8 @@ from ._data import DataError, OrbitDataset
 from ._gp import fit_gp
 from ._identify import TrainingData, identify, residual_forces, training_data
 from ._metrics import branch_metrics, estimate_from_data, locations, with_reference
-from ._models import UDE
-from ._train import Diverged, TrainConfig, train_ude
+from ._models import UDE, duffing7, flutter_qs
+from ._train import Diverged, TrainConfig, refine_mechanistic, train_ude
 
 APPROXIMATORS = ("nn", "gp")
 TRAININGS = ("trajectory", "periodic")
@@ -44,6 +44,7 @@ class FitOptions:
     adequacy_factor: float = 2.0
     adequacy_floor: float = 0.01
     gp_restarts: int = 2
+    mechanistic: str = "periodic"     # "equation": least squares only; "periodic": refined
 
     def __post_init__(self):
         if self.system not in ("flutter", "oscillator"):
@@ -52,6 +53,8 @@ class FitOptions:
             raise ValueError(f"approximator must be nn or gp, not {self.approximator!r}")
         if self.training not in TRAININGS:
             raise ValueError(f"training must be trajectory or periodic, not {self.training!r}")
+        if self.mechanistic not in ("equation", "periodic"):
+            raise ValueError(f"mechanistic must be equation or periodic, not {self.mechanistic!r}")
         if self.starts < 1:
             raise ValueError(f"starts must be at least 1, not {self.starts}")
 
@@ -117,6 +120,17 @@ def _evaluate(model, ds, ranges, scales, reference, ref_source) -> tuple[dict, d
 # the pipeline
 # ---------------------------------------------------------------------------------------
 
+def _unphysical(mech) -> str:
+    """Names of identified damping/stiffness values that no passive structure has."""
+    names = ("c_h", "c_alpha", "k_h", "k_alpha") if mech.system == "flutter" else ()
+    bad = [f"{n} = {float(getattr(mech, n)):.4g}" for n in names if float(getattr(mech, n)) <= 0]
+    return ", ".join(bad)
+
+
+def nominal_mechanistic(system: str):
+    return flutter_qs() if system == "flutter" else duffing7()
+
+
 def _is_adequate(m, best_rms, mech_rms, opts) -> bool:
     if m is None or m["branch_rms"] is None or m["missed"] > 0:
         return False
@@ -162,6 +176,24 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
     say(event="stage", stage="mechanistic identification")
     mech, ident = identify(data, opts.system)
     mech_model = UDE(mech)
+    if opts.mechanistic == "periodic":
+        bad = _unphysical(mech)
+        if bad:
+            # equation error on noisy derivatives can land on negative damping; the
+            # output-error refinement then starts from the nominal (design) values
+            ident["equation_estimate_rejected"] = bad
+            mech_model = UDE(nominal_mechanistic(opts.system))
+        say(event="stage", stage="mechanistic identification (periodic orbits)")
+        mech_model, info = refine_mechanistic(
+            mech_model, data, cfg=opts.train,
+            progress=(lambda **kw: say(event="train", start=0, **kw)) if progress else None)
+        ident["method"] = "equation error, then periodic-orbit output error"
+        ident["equation_parameters"] = ident["parameters"]
+        ident["parameters"] = {f: float(getattr(mech_model.mech, f))
+                               for f in mech_model.mech.fitted}
+        ident["periodic_loss"] = info["loss"]
+    else:
+        ident["method"] = "equation error (least squares)"
     say(event="stage", stage="mechanistic diagram")
     mech_diag, mech_m = _evaluate(mech_model, ds, ranges, scales, ref, ref_source)
     say(event="model", which="mechanistic", metrics=mech_m)

@@ -1,0 +1,155 @@
+"""ude_fit benchmark figures (JSON on stdout): fit time to 1 % branch error, continuation time
+per branch, periodic-orbit against trajectory training, and how the error and the apparent
+Hopf point move with measurement noise for the NN and the GP corrections.
+
+    python3 benchmarks/ude_benchmark.py [--quick] [--out FILE.json]
+
+Data: the aerofoil rig's true limit cycles written in the campaign layout by the test fixture
+(tests/ude_fixtures.py), σ = 0 (averaged truth) or σ > 0 (a held orbit, noisy raw record,
+Fourier-averaged by the loader). Truth Hopf/fold from the rig's own continuation. Every fit
+runs in a fresh subprocess so compilation is counted where the figure says so. Medians over
+``--repeat`` runs where a figure is a time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+AIRSPEEDS_10 = (18.0, 19.5, 21.0, 22.5, 23.6)          # 10 orbits: 5 stable, 5 unstable
+AIRSPEEDS_16 = (17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0, 23.6)
+
+
+def _child(spec: dict) -> dict:
+    """Run one fit in this (fresh) process; returns its figures."""
+    t_import = time.perf_counter()
+    from ude_fit import FitOptions, TrainConfig, fit, load
+    from ude_fit._continuation import trace_flutter
+    ds = load([spec["data"]], "flutter")
+    cfg = TrainConfig(**spec.get("train", {}))
+    opts = FitOptions("flutter", approximator=spec["approximator"], training=spec["training"],
+                      starts=spec["starts"], seed=spec.get("seed", 0), train=cfg,
+                      mechanistic=spec.get("mechanistic", "periodic"))
+    first_ok = {}
+    t0 = time.perf_counter()
+
+    def progress(event, **kw):
+        if event == "start_done" and "t" not in first_ok:
+            m = kw["record"].get("metrics") or {}
+            if m.get("branch_rms") is not None and m["branch_rms"] <= 0.01 and m["missed"] == 0:
+                first_ok["t"] = time.perf_counter() - t0
+                first_ok["start"] = kw["record"]["start"]
+
+    res = fit(ds, opts, reference=spec["truth"], progress=progress)
+    total = time.perf_counter() - t0
+    out = {"seconds_total": total, "seconds_import": t0 - t_import,
+           "seconds_to_first_1pct": first_ok.get("t"), "first_1pct_start": first_ok.get("start"),
+           "orbits": len(ds),
+           "adequate": res.metrics["starts"]["adequate"], "starts": opts.starts,
+           "train_seconds": [r.get("train_seconds") for r in res.metrics["starts"]["records"]]}
+    for side in ("mechanistic", "ude"):
+        m = res.metrics[side] or {}
+        out[side] = {"branch_rms": m.get("branch_rms"), "branch_max": m.get("branch_max"),
+                     "missed": m.get("missed"), "trajectory_rms": m.get("trajectory_rms"),
+                     "hopf": (m.get("hopf") or {}).get("model"),
+                     "hopf_error": (m.get("hopf") or {}).get("error"),
+                     "fold": (m.get("fold") or {}).get("model"),
+                     "fold_error": (m.get("fold") or {}).get("error")}
+    if spec.get("time_continuation") and res.ude is not None:
+        times = []
+        for _ in range(3):
+            t1 = time.perf_counter()
+            br = trace_flutter(res.ude, v_range=res.ranges["v_range"],
+                               amp_max=res.ranges["amp_max"], scales=res.scales)
+            times.append(time.perf_counter() - t1)
+        out["continuation"] = {"seconds_median": statistics.median(times),
+                               "seconds_runs": times, "points": int(br.param.size)}
+    return out
+
+
+def _run_child(spec: dict) -> dict:
+    r = subprocess.run([sys.executable, __file__, "--child", json.dumps(spec)],
+                       capture_output=True, text=True, cwd=ROOT)
+    if r.returncode != 0:
+        return {"error": (r.stderr.strip().splitlines() or ["failed"])[-1]}
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer starts and noise levels")
+    ap.add_argument("--repeat", type=int, default=1, help="repeats of the timed fit (median)")
+    ap.add_argument("--out", help="also write the JSON here")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.child:
+        print(json.dumps(_child(json.loads(a.child))))
+        return 0
+
+    from tests.ude_fixtures import flutter_branch, write_truth_campaign
+    br = flutter_branch()
+    truth = {"hopf": float(br.hopf[0]), "fold": float(min(f["V"] for f in br.folds))}
+    tmp = tempfile.mkdtemp(prefix="ude_bench_")
+    files = {}
+    for sigma in ((0.0, 0.02) if a.quick else (0.0, 0.02, 0.04)):
+        for name, speeds in (("10", AIRSPEEDS_10), ("16", AIRSPEEDS_16)):
+            if name == "16" and sigma == 0.0 or name == "10":
+                path = os.path.join(tmp, f"flutter_{name}_s{sigma:g}.h5")
+                write_truth_campaign(path, "flutter", airspeeds=speeds, sigma=sigma, seed=1)
+                files[(name, sigma)] = path
+    starts = 2 if a.quick else 5
+    result = {"benchmark": "ude_fit", "truth": truth, "python": platform.python_version(),
+              "machine": platform.machine(), "cpus": os.cpu_count()}
+
+    # 1. wall time to fit the 2x12 UDE on 10 orbits to 1 % branch error, compile included
+    runs = [_run_child({"data": files[("10", 0.0)], "approximator": "nn",
+                        "training": "periodic", "starts": 1, "truth": truth,
+                        "time_continuation": True}) for _ in range(max(1, a.repeat))]
+    ok = [r for r in runs if "error" not in r]
+    result["fit_to_1pct"] = {
+        "orbits": ok[0]["orbits"] if ok else None,
+        "seconds_median": statistics.median(r["seconds_total"] for r in ok) if ok else None,
+        "reached_1pct": [r["ude"]["branch_rms"] is not None and r["ude"]["branch_rms"] <= 0.01
+                         for r in ok],
+        "ude_branch_rms": [r["ude"]["branch_rms"] for r in ok],
+        "mechanistic_branch_rms": ok[0]["mechanistic"]["branch_rms"] if ok else None,
+        "goal_seconds": 60, "runs": runs}
+    result["continuation_per_branch"] = ok[0].get("continuation") if ok else None
+
+    # 2. periodic-orbit against trajectory training, same data, same starts
+    comp = {}
+    for training in ("periodic", "trajectory"):
+        comp[training] = _run_child({"data": files[("10", 0.0)], "approximator": "nn",
+                                     "training": training, "starts": starts, "truth": truth})
+    result["periodic_vs_trajectory"] = comp
+
+    # 3. noise: NN and GP at each sigma
+    noise = []
+    for (name, sigma), path in sorted(files.items()):
+        if name != "10":
+            continue
+        for approx in ("nn", "gp"):
+            r = _run_child({"data": path, "approximator": approx, "training": "periodic",
+                            "starts": 1 if approx == "gp" else min(starts, 3), "truth": truth})
+            noise.append({"sigma": sigma, "approximator": approx, **r})
+    result["noise"] = noise
+    text = json.dumps(result, indent=2)
+    print(text)
+    if a.out:
+        with open(a.out, "w") as fh:
+            fh.write(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

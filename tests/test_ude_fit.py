@@ -1,0 +1,194 @@
+"""`ude-fit fit` on the aerofoil rig's true limit cycles: the UDE against the mechanistic model,
+judged by the rig's own truth (Hopf, fold, orbits); model files, the diagram command, errors.
+
+One 5-start fit serves the module (run in-process, so compiled functions are shared).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from tests.ude_fixtures import flutter_branch, write_truth_campaign
+from ude_fit import (DataError, Diverged, FitOptions, TrainConfig, fit, hopf_point, load,
+                     load_model)
+from ude_fit import _fit as fit_module
+from ude_fit import cli
+from ude_fit._train import minimize
+
+AIRSPEEDS = (17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0, 23.6)
+
+
+@pytest.fixture(scope="module")
+def truth():
+    br = flutter_branch()
+    return {"hopf": br.hopf[0], "fold": min(f["V"] for f in br.folds)}
+
+
+@pytest.fixture(scope="module")
+def flutter_fit(tmp_path_factory, truth):
+    d = tmp_path_factory.mktemp("ude_fit")
+    data = d / "flutter.h5"
+    write_truth_campaign(data, "flutter", airspeeds=AIRSPEEDS)
+    out = d / "out"
+    rc = cli.main(["fit", str(data), "--system", "flutter", "--starts", "5", "--seed", "0",
+                   "--reference-hopf", repr(truth["hopf"]), "--reference-fold",
+                   repr(truth["fold"]), "--out", str(out), "--quiet"])
+    with open(out / "metrics.json") as fh:
+        metrics = json.load(fh)
+    return {"rc": rc, "data": data, "out": out, "metrics": metrics}
+
+
+def test_metrics_file_has_both_models_side_by_side(flutter_fit):
+    assert flutter_fit["rc"] == 0
+    m = flutter_fit["metrics"]
+    for side in ("mechanistic", "ude"):
+        for key in ("branch_rms", "branch_max", "missed", "hopf", "fold", "trajectory_rms"):
+            assert key in m[side], (side, key)
+    assert m["starts"]["requested"] == 5 and len(m["starts"]["records"]) == 5
+    assert m["data"]["stable"] >= 6 and m["data"]["unstable"] >= 6
+    assert m["inputs"][0]["sha256"] and m["version"] and m["command"].startswith("ude-fit fit")
+
+
+def test_ude_branch_error_at_most_1_percent_and_below_mechanistic(flutter_fit):
+    m = flutter_fit["metrics"]
+    assert m["ude"]["missed"] == 0
+    assert m["ude"]["branch_rms"] <= 0.01
+    assert m["ude"]["branch_rms"] < m["mechanistic"]["branch_rms"]
+    assert m["ude"]["trajectory_rms"] < m["mechanistic"]["trajectory_rms"]
+
+
+def test_ude_hopf_and_fold_within_0_1_mps_of_truth(flutter_fit, truth):
+    m = flutter_fit["metrics"]["ude"]
+    assert m["hopf"]["reference"] == pytest.approx(truth["hopf"])
+    assert abs(m["hopf"]["model"] - truth["hopf"]) <= 0.1
+    assert abs(m["fold"]["model"] - truth["fold"]) <= 0.1
+
+
+def test_at_least_4_of_5_starts_adequate(flutter_fit):
+    st = flutter_fit["metrics"]["starts"]
+    assert st["adequate"] >= 4
+    kept = [r for r in st["records"] if r["start"] == st["kept"]][0]
+    assert kept["adequate"]
+    assert kept["metrics"]["branch_rms"] == min(r["metrics"]["branch_rms"]
+                                                for r in st["records"] if r["adequate"])
+
+
+def test_report_and_figures_written(flutter_fit):
+    out = flutter_fit["out"]
+    text = (out / "report.md").read_text()
+    assert "| branch amplitude error, RMS |" in text and "adequate" in text
+    for png in ("diagram.png", "phase_portraits.png"):
+        with open(out / png, "rb") as fh:
+            assert fh.read(8) == b"\x89PNG\r\n\x1a\n"
+        assert (out / png).stat().st_size > 10_000
+
+
+def test_model_file_reloads_to_the_same_model(flutter_fit):
+    model, header = load_model(flutter_fit["out"] / "ude.eqx")
+    stored = header["diagram"]["flutter"]["hopf"]["param"]
+    assert header["system"] == "flutter" and header["role"] == "ude"
+    assert hopf_point(model, header["ranges"]["v_range"])["param"] == pytest.approx(stored,
+                                                                                    rel=1e-10)
+    assert stored == pytest.approx(flutter_fit["metrics"]["ude"]["hopf"]["model"], rel=1e-12)
+
+
+def test_diagram_command_retraces_a_saved_model(flutter_fit, tmp_path):
+    r = subprocess.run([sys.executable, "-m", "ude_fit.cli", "diagram",
+                        str(flutter_fit["out"] / "mechanistic.eqx"), "--retrace",
+                        "--data", str(flutter_fit["data"]), "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "mechanistic_diagram.png").stat().st_size > 10_000
+    saved = json.loads((tmp_path / "mechanistic_diagram.json").read_text())
+    hopf = saved["diagram"]["flutter"]["hopf"]["param"]
+    assert hopf == pytest.approx(flutter_fit["metrics"]["mechanistic"]["hopf"]["model"],
+                                 rel=1e-8)
+
+
+# ---- bad input: one line, status 2 -------------------------------------------------------
+
+def _run(*args, timeout=120):
+    return subprocess.run([sys.executable, "-m", "ude_fit.cli", *args], capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_not_a_data_file_is_one_line_error(tmp_path):
+    bad = tmp_path / "notes.h5"
+    bad.write_text("not hdf5")
+    r = _run("fit", str(bad), "--system", "flutter", "--out", str(tmp_path / "o"))
+    assert r.returncode == 2
+    assert len(r.stderr.strip().splitlines()) == 1 and "notes.h5" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_empty_folder_is_one_line_error(tmp_path):
+    (tmp_path / "empty").mkdir()
+    r = _run("fit", str(tmp_path / "empty"), "--system", "flutter", "--out", str(tmp_path / "o"))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("args, word", [
+    (["--starts", "0"], "--starts"),
+    (["--system", "pendulum"], "--system"),
+    (["--approximator", "svm"], "--approximator"),
+])
+def test_bad_options_name_the_option(flutter_fit, tmp_path, args, word):
+    base = ["fit", str(flutter_fit["data"]), "--out", str(tmp_path / "o")]
+    if "--system" not in args:
+        base += ["--system", "flutter"]
+    r = _run(*base, *args)
+    assert r.returncode == 2 and word in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_wrong_system_for_the_data(flutter_fit, tmp_path):
+    r = _run("fit", str(flutter_fit["data"]), "--system", "oscillator", "--out",
+             str(tmp_path / "o"))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_not_a_model_file(tmp_path):
+    bad = tmp_path / "model.eqx"
+    bad.write_bytes(b"\x00\x01garbage")
+    r = _run("diagram", str(bad))
+    assert r.returncode == 2 and "not a ude_fit model file" in r.stderr
+
+
+# ---- divergence: the start is dropped and reported -----------------------------------------
+
+def test_nan_loss_raises_diverged():
+    import jax.numpy as jnp
+    with pytest.raises(Diverged, match="not finite"):
+        minimize(lambda p: jnp.sum(p["x"]) * jnp.nan, {"x": jnp.ones(2)}, (),
+                 adam_steps=25, lbfgs_steps=0, lr=1e-3)
+
+
+def test_diverged_start_is_dropped_not_kept(flutter_fit, monkeypatch):
+    ds = load([flutter_fit["data"]], "flutter")
+    real = fit_module.train_ude
+    calls = []
+
+    def flaky(*a, **kw):
+        calls.append(1)
+        if len(calls) == 1:
+            raise Diverged("periodic: loss is not finite at Adam step 25")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(fit_module, "train_ude", flaky)
+    cfg = TrainConfig(equation_steps=200, adam_steps=50, lbfgs_steps=10)
+    res = fit(ds, FitOptions("flutter", starts=2, train=cfg, mechanistic="equation"))
+    st = res.metrics["starts"]
+    assert st["dropped"] == [{"start": 1, "reason": "periodic: loss is not finite at Adam step 25"}]
+    assert st["kept"] == 2 and st["completed"] == 1
+    assert not st["records"][0]["adequate"]
+
+
+def test_empty_dataset_is_an_error(flutter_fit):
+    ds = load([flutter_fit["data"]], "flutter")
+    with pytest.raises(DataError, match="empty"):
+        fit(ds.select(np.zeros(len(ds), bool)), FitOptions("flutter"))
