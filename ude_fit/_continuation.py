@@ -424,7 +424,7 @@ def _hopf_public(h):
 
 
 def trace_forced(model: UDE, *, freq_hz: float, a_range, amp_max: float, scales,
-                 n: int = 400, max_points: int = 400) -> Branch:
+                 n: int = 200, max_points: int = 400) -> Branch:
     """Response curve against the forcing amplitude at a fixed frequency."""
     omega = 2 * np.pi * freq_hz
     ns = model.n_state
@@ -498,3 +498,50 @@ def orbit_at(model: UDE, branch: Branch, param: float, stable: bool | None, *, s
     rec = _record(prob, pt)
     return {"samples": pt.ys[:, :model.n_state], "period": rec["period"],
             "amplitude": rec["amplitude"], "stable": bool(rec["stable"])}
+
+
+def trace_flutter_through(model: UDE, y0, T: float, V: float, *, v_range, amp_max: float,
+                          scales, n: int = 200, max_points: int = 300) -> Branch | None:
+    """The branch through a given orbit guess (y0 with h'(0) ~ 0, period T) at airspeed V,
+    continued both ways: for branches not connected to the Hopf point (isolas), which a
+    fitted model can have. None if no periodic orbit is found near the guess."""
+    ns = model.n_state
+    su = np.concatenate([np.asarray(scales, float), [T, max(1.0, abs(V))]])
+    prob = _Autonomous(model, su, n)
+    us = np.concatenate([np.asarray(y0, float), [T, V]]) / su
+    a = np.zeros(ns + 2)
+    a[prob.par_index] = 1.0
+    first = _newton(prob, us, a, us.copy())
+    if first is None:
+        return None
+    y1, T1, _ = prob.unpack(first.us)
+    if np.max(np.abs(first.ys[:, 0])) < 1e-3 * scales[0] or not (T / 2 < T1 < 2 * T):
+        return None                     # collapsed onto the equilibrium or another period
+
+    def stop(problem, pt):
+        y, TT, VV = problem.unpack(pt.us)
+        if not (v_range[0] <= VV <= v_range[1]):
+            return "airspeed out of range"
+        if abs(y[0]) > amp_max:
+            return "amplitude cap"
+        if np.max(np.abs(pt.ys[:, 0])) < 1e-3 * scales[0]:
+            return "amplitude collapsed"
+        if not (T / 4 < TT < 4 * T):
+            return "period out of range"
+        return ""
+
+    t_par = np.zeros(ns + 2)
+    t_par[prob.par_index] = 1.0
+    halves = []
+    for sign in (1.0, -1.0):
+        seq, tans, folds, reason = _continue(prob, first, sign * t_par, ds=0.02, ds_min=1e-5,
+                                             ds_max=0.08, max_points=max_points // 2,
+                                             stop=stop)
+        halves.append((seq, tans, folds, reason))
+    (fs, ft, ff, fr), (bs, bt, bf, br) = halves
+    # backward half reversed (its tangents flipped) + forward half without the shared point
+    m = len(bs)
+    pts = bs[::-1] + fs[1:]
+    tans = [-t for t in bt[::-1]] + ft[1:]
+    folds = sorted([m - 2 - k for k in bf] + [m - 1 + k for k in ff])
+    return _assemble(prob, "flutter", pts, tans, folds, f"{br}; {fr}", hopf=None)

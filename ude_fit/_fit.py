@@ -6,8 +6,9 @@ both models, their traced diagrams, the metrics side by side and a record of eve
 Adequacy (the paper found single trainings often land in poor local minima): a start is
 *adequate* when its diagram has an orbit at every measured point with the measured
 stability (nothing missed), its branch RMS error is below the mechanistic model's, and
-it is within ``adequacy_factor`` times the best start's error (or under
-``adequacy_floor``, whichever is larger). The kept start is the adequate one with the
+it is within ``adequacy_factor`` times the best start's error, or under
+``adequacy_floor``, or under the data's own scatter about smooth branches
+(:func:`data_scatter`), whichever is largest. The kept start is the adequate one with the
 smallest branch error; if none is adequate, the one with the fewest missed points and
 then the smallest error, and the result says so.
 """
@@ -20,11 +21,12 @@ from dataclasses import asdict, dataclass, field
 import jax
 import numpy as np
 
-from ._continuation import Branch, trace_flutter, trace_forced
+from ._continuation import Branch, trace_flutter, trace_flutter_through, trace_forced
 from ._data import DataError, OrbitDataset
 from ._gp import fit_gp
 from ._identify import TrainingData, identify, residual_forces, training_data
-from ._metrics import branch_metrics, estimate_from_data, locations, with_reference
+from ._metrics import (branch_metrics, estimate_from_data, locations, model_orbit,
+                       with_reference)
 from ._models import UDE, duffing7, flutter_qs
 from ._train import Diverged, TrainConfig, refine_mechanistic, train_ude
 
@@ -44,7 +46,7 @@ class FitOptions:
     adequacy_factor: float = 2.0
     adequacy_floor: float = 0.01
     gp_restarts: int = 2
-    mechanistic: str = "periodic"     # "equation": least squares only; "periodic": refined
+    mechanistic: str = "equation"     # "equation": least squares; "periodic": then refined
 
     def __post_init__(self):
         if self.system not in ("flutter", "oscillator"):
@@ -95,11 +97,18 @@ def diagram_ranges(ds: OrbitDataset) -> dict:
     return {"frequencies": out}
 
 
-def trace_diagram(model: UDE, ranges: dict, scales) -> dict:
-    """The model's branches: {"flutter": Branch} or {freq_hz: Branch}."""
+def trace_diagram(model: UDE, ranges: dict, scales, ds: OrbitDataset | None = None) -> dict:
+    """The model's branches: {"flutter": Branch, "flutter/1": isola, ...} or {freq_hz: Branch}.
+
+    Aerofoil: the branch from the Hopf point; with ``ds``, also the branch through every
+    measured orbit that branch does not explain (a fitted model can have isolas, which a
+    continuation from the Hopf point alone would never see)."""
     if model.system == "flutter":
-        return {"flutter": trace_flutter(model, v_range=ranges["v_range"],
-                                         amp_max=ranges["amp_max"], scales=scales)}
+        out = {"flutter": trace_flutter(model, v_range=ranges["v_range"],
+                                        amp_max=ranges["amp_max"], scales=scales)}
+        if ds is not None:
+            _add_isolas(model, out, ranges, scales, ds)
+        return out
     out = {}
     for key, r in ranges["frequencies"].items():
         lo, hi = r["a_range"]
@@ -109,8 +118,25 @@ def trace_diagram(model: UDE, ranges: dict, scales) -> dict:
     return out
 
 
+def _add_isolas(model, diagram, ranges, scales, ds, max_isolas: int = 6, near: float = 0.02):
+    start = ds.sample(1)
+    a_max = float(ds.amplitudes().max())
+    for i, o in enumerate(ds.orbits):
+        if len(diagram) > max_isolas:
+            break
+        sol = model_orbit(model, diagram, o, scales=scales)
+        if sol is not None and abs(sol["amplitude"] - o.amplitude) <= near * a_max:
+            continue
+        y0 = np.concatenate([start["q"][i, 0], start["qdot"][i, 0]])
+        b = trace_flutter_through(model, y0, 1.0 / o.frequency, o.parameter,
+                                  v_range=ranges["v_range"], amp_max=ranges["amp_max"],
+                                  scales=scales)
+        if b is not None and b.param.size > 1:
+            diagram[f"flutter/{len(diagram)}"] = b
+
+
 def _evaluate(model, ds, ranges, scales, reference, ref_source) -> tuple[dict, dict]:
-    diagram = trace_diagram(model, ranges, scales)
+    diagram = trace_diagram(model, ranges, scales, ds)
     m = branch_metrics(model, diagram, ds, scales=scales)
     m.update(with_reference(locations(diagram), reference, ref_source))
     return diagram, m
@@ -119,6 +145,14 @@ def _evaluate(model, ds, ranges, scales, reference, ref_source) -> tuple[dict, d
 # ---------------------------------------------------------------------------------------
 # the pipeline
 # ---------------------------------------------------------------------------------------
+
+def _relative_noise(ds: OrbitDataset) -> float | None:
+    """Median over the orbits of the raw record's residual RMS (after the harmonic fit) in
+    the first coordinate, relative to that orbit's amplitude; None without raw records."""
+    r = ds.noise()[:, 0] / ds.amplitudes()
+    r = r[np.isfinite(r)]
+    return float(np.median(r)) if r.size else None
+
 
 def _unphysical(mech) -> str:
     """Names of identified damping/stiffness values that no passive structure has."""
@@ -131,12 +165,31 @@ def nominal_mechanistic(system: str):
     return flutter_qs() if system == "flutter" else duffing7()
 
 
-def _is_adequate(m, best_rms, mech_rms, opts) -> bool:
+def data_scatter(ds: OrbitDataset) -> float:
+    """How far the measured points themselves lie from smooth branches: RMS residual of a
+    quadratic in the parameter through each stability class (of 4 or more points; per
+    frequency for the oscillator), over the largest amplitude. No fit can be asked to be
+    closer to the data than this."""
+    A, a_max = ds.amplitudes(), float(ds.amplitudes().max())
+    P = ds.parameters()
+    groups = [np.ones(len(ds), bool)] if ds.system == "flutter" else [
+        np.round(ds.frequencies(), 6) == f for f in ds.frequencies_group()]
+    res = []
+    for g in groups:
+        for label in (True, False):
+            m = g & np.array([o.stable is label for o in ds.orbits])
+            if m.sum() >= 4 and np.ptp(P[m]) > 0:
+                c = np.polyfit(P[m], A[m], 2)
+                res.extend((A[m] - np.polyval(c, P[m])).tolist())
+    return float(np.sqrt(np.mean(np.square(res))) / a_max) if res else 0.0
+
+
+def _is_adequate(m, best_rms, mech_rms, opts, scatter: float = 0.0) -> bool:
     if m is None or m["branch_rms"] is None or m["missed"] > 0:
         return False
     if mech_rms is not None and m["branch_rms"] >= mech_rms:
         return False
-    return m["branch_rms"] <= max(opts.adequacy_factor * best_rms, opts.adequacy_floor)
+    return m["branch_rms"] <= max(opts.adequacy_factor * best_rms, opts.adequacy_floor, scatter)
 
 
 def _train_start(mech_model, data: TrainingData, opts: FitOptions, k: int, key, progress):
@@ -176,24 +229,28 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
     say(event="stage", stage="mechanistic identification")
     mech, ident = identify(data, opts.system)
     mech_model = UDE(mech)
+    ident["method"] = "equation error (least squares)"
+    bad = _unphysical(mech)
+    if bad:
+        # equation error on noisy derivatives can land on negative damping or stiffness,
+        # which no passive structure has: the design values stand in (and it is recorded)
+        ident["equation_estimate_rejected"] = bad
+        ident["equation_parameters"] = ident["parameters"]
+        mech_model = UDE(nominal_mechanistic(opts.system))
+        ident["method"] = "design values (the least-squares estimate was unphysical)"
+        ident["parameters"] = {f: float(getattr(mech_model.mech, f))
+                               for f in mech_model.mech.fitted}
     if opts.mechanistic == "periodic":
-        bad = _unphysical(mech)
-        if bad:
-            # equation error on noisy derivatives can land on negative damping; the
-            # output-error refinement then starts from the nominal (design) values
-            ident["equation_estimate_rejected"] = bad
-            mech_model = UDE(nominal_mechanistic(opts.system))
         say(event="stage", stage="mechanistic identification (periodic orbits)")
+        start_params = ident["parameters"]
         mech_model, info = refine_mechanistic(
             mech_model, data, cfg=opts.train,
             progress=(lambda **kw: say(event="train", start=0, **kw)) if progress else None)
-        ident["method"] = "equation error, then periodic-orbit output error"
-        ident["equation_parameters"] = ident["parameters"]
+        ident["method"] += ", then periodic-orbit output error"
+        ident["start_parameters"] = start_params
         ident["parameters"] = {f: float(getattr(mech_model.mech, f))
                                for f in mech_model.mech.fitted}
         ident["periodic_loss"] = info["loss"]
-    else:
-        ident["method"] = "equation error (least squares)"
     say(event="stage", stage="mechanistic diagram")
     mech_diag, mech_m = _evaluate(mech_model, ds, ranges, scales, ref, ref_source)
     say(event="model", which="mechanistic", metrics=mech_m)
@@ -218,12 +275,14 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
         say(event="start_done", start=k + 1, record=rec)
         starts.append(rec)
 
+    scatter = data_scatter(ds)
     ok = [s for s in starts if s["status"] == "ok" and s["metrics"]["branch_rms"] is not None]
     best_rms = min((s["metrics"]["branch_rms"] for s in ok if s["metrics"]["missed"] == 0),
                    default=np.inf)
     for s in starts:
         s["adequate"] = (s["status"] == "ok"
-                         and _is_adequate(s["metrics"], best_rms, mech_m["branch_rms"], opts))
+                         and _is_adequate(s["metrics"], best_rms, mech_m["branch_rms"], opts,
+                                          scatter))
     best = None
     if ok:
         best = min(ok, key=lambda s: (not s["adequate"], s["metrics"]["missed"],
@@ -235,8 +294,11 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
         "data": {"points": len(ds), "sources": list(ds.sources),
                  "stable": int(sum(1 for o in ds if o.stable is True)),
                  "unstable": int(sum(1 for o in ds if o.stable is False)),
-                 "max_amplitude": float(ds.amplitudes().max())},
+                 "max_amplitude": float(ds.amplitudes().max()),
+                 "noise_rms": _relative_noise(ds), "scatter": scatter},
         "mechanistic": {**mech_m, "parameters": ident["parameters"],
+                        "identification": {k: v for k, v in ident.items()
+                                           if k not in ("parameters", "std_error")},
                         "std_error": ident["std_error"]},
         "ude": None if best is None else {**best["metrics"], "start": best["start"],
                                           "adequate": best["adequate"]},
@@ -248,7 +310,8 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
                    "kept": None if best is None else best["start"],
                    "criterion": {"missed": 0, "below_mechanistic": True,
                                  "factor_of_best": opts.adequacy_factor,
-                                 "floor": opts.adequacy_floor},
+                                 "floor": opts.adequacy_floor,
+                                 "data_scatter": scatter},
                    "records": [_public(s) for s in starts]},
         "ranges": ranges,
         "seconds": time.perf_counter() - t_start,
@@ -281,4 +344,5 @@ def diagram_to_dict(diagram: dict | None) -> dict | None:
 def diagram_from_dict(d: dict | None) -> dict | None:
     if d is None:
         return None
-    return {(k if k == "flutter" else float(k)): Branch.from_dict(b) for k, b in d.items()}
+    return {(k if k.startswith("flutter") else float(k)): Branch.from_dict(b)
+            for k, b in d.items()}

@@ -60,12 +60,9 @@ def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> dict:
                               for o in ds.orbits) for i in range(n_pos)])
     points = []
     for o in ds.orbits:
-        branch = _branch_for(diagram, o)
         rec = {"parameter": o.parameter, "frequency": o.frequency, "measured": o.amplitude,
                "stable": o.stable}
-        sol = None
-        if branch is not None:
-            sol = orbit_at(model, branch, o.parameter, o.stable, scales=scales, near=o.amplitude)
+        sol = model_orbit(model, diagram, o, scales=scales)
         if sol is None or (o.stable is not None and sol["stable"] != o.stable):
             rec.update(model=None, error=None, trajectory=None, missed=True)
         else:
@@ -93,13 +90,27 @@ def _summary(points: list) -> dict:
             "trajectory_rms": float(np.sqrt(np.mean(traj ** 2))) if traj.size else None}
 
 
-def _branch_for(diagram: dict, o) -> Branch | None:
-    if "flutter" in diagram:
-        return diagram["flutter"]
-    for f, b in diagram.items():
-        if abs(float(f) - o.frequency) <= 1e-6 * max(1.0, o.frequency):
-            return b
-    return None
+def branches_for(diagram: dict, o) -> list[Branch]:
+    """The branches of a diagram that can hold orbit ``o``: every aerofoil branch (the one
+    from the Hopf point and any isola), or the oscillator's branch at o's frequency."""
+    if any(str(k).startswith("flutter") for k in diagram):
+        return [b for k, b in diagram.items() if str(k).startswith("flutter")]
+    return [b for f, b in diagram.items()
+            if abs(float(f) - o.frequency) <= 1e-6 * max(1.0, o.frequency)]
+
+
+def model_orbit(model, diagram: dict, o, *, scales) -> dict | None:
+    """The model's orbit matching measured orbit ``o``: same parameter, the measured
+    stability, nearest in amplitude over all branches (see _continuation.orbit_at)."""
+    best = None
+    for b in branches_for(diagram, o):
+        sol = orbit_at(model, b, o.parameter, o.stable, scales=scales, near=o.amplitude)
+        if sol is None or (o.stable is not None and sol["stable"] != o.stable):
+            continue
+        if best is None or abs(sol["amplitude"] - o.amplitude) < abs(best["amplitude"]
+                                                                      - o.amplitude):
+            best = sol
+    return best
 
 
 def locations(diagram: dict) -> dict:
@@ -108,7 +119,10 @@ def locations(diagram: dict) -> dict:
         b = diagram["flutter"]
         hopf = b.hopf["param"] if b.hopf else None
         folds = sorted(f["param"] for f in b.folds)
-        return {"hopf": hopf, "fold": folds[0] if folds else None, "folds": folds}
+        others = sorted(f["param"] for k, bb in diagram.items() if k != "flutter"
+                        for f in bb.folds)
+        return {"hopf": hopf, "fold": folds[0] if folds else None, "folds": folds,
+                "isolas": len(diagram) - 1, "isola_folds": others}
     return {"hopf": None, "fold": None,
             "folds": {f"{float(f):g}": sorted(x["param"] for x in b.folds)
                       for f, b in diagram.items()}}
@@ -154,4 +168,7 @@ def with_reference(loc: dict, reference: dict, source: str) -> dict:
                     "reference_source": source if r is not None else None}
     if isinstance(loc.get("folds"), dict):
         out["folds"] = loc["folds"]
+    if "isolas" in loc:
+        out["isolas"] = loc["isolas"]
+        out["isola_folds"] = loc["isola_folds"]
     return out

@@ -20,7 +20,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from ._continuation import Branch, orbit_at
+from ._continuation import Branch
+from ._metrics import model_orbit
 
 MM = 1e3                                    # m -> mm
 DPI = 120
@@ -139,6 +140,9 @@ def diagram_figure(ds, diagrams: dict, *, title: str = "") -> Figure:
             if b is None:
                 continue
             _draw_branch(ax, b, colours[n])
+            for key, isola in diagrams[n].items():      # branches not from the Hopf point
+                if key != "flutter":
+                    _draw_branch(ax, isola, colours[n])
             if b.hopf:
                 vh = b.hopf["param"]
                 ax.plot([lo, vh], [0, 0], color=colours[n], lw=1.8, zorder=3)
@@ -226,10 +230,10 @@ def phase_figure(ds, models: dict, diagrams: dict, *, scales, max_points: int = 
         notes = []
         for nm in names:
             model = models.get(nm)
-            b = _branch_for(diagrams.get(nm), None if flutter else o.frequency)
+            d = diagrams.get(nm)
             orb = None
-            if model is not None and b is not None:
-                orb = orbit_at(model, b, o.parameter, o.stable, scales=scales, near=o.amplitude)
+            if model is not None and d:
+                orb = model_orbit(model, d, o, scales=scales)
             if orb is None:
                 notes.append(f"{nm}: no orbit")
                 continue

@@ -60,6 +60,12 @@ def render(metrics: dict, figures: dict) -> str:
         L.append(f"| fold airspeed ({unit}) | {_loc(mech.get('fold'))} | "
                  f"{_loc((ude or {}).get('fold'))} |")
         L += ["", f"References: Hopf {_ref(mech, 'hopf')}, fold {_ref(mech, 'fold')}."]
+        for name, mm in (("mechanistic", mech), ("UDE", ude or {})):
+            if mm.get("isolas"):
+                L.append(f"The {name} model also has {mm['isolas']} branch(es) not connected "
+                         "to its Hopf point (traced from the measured orbits it passes near)"
+                         + (f", with folds at {', '.join(f'{x:.3f}' for x in mm['isola_folds'])}"
+                            if mm.get("isola_folds") else "") + ".")
     else:
         L += ["", "### Per forcing frequency", "",
               "| frequency (Hz) | mechanistic RMS | UDE RMS | mechanistic max | UDE max | "
@@ -78,7 +84,9 @@ def render(metrics: dict, figures: dict) -> str:
           f"{len(st['dropped'])} dropped). A start is adequate when it misses no measured point "
           "(an orbit with the measured stability at every measured parameter), its branch RMS "
           f"error is below the mechanistic model's, and within {st['criterion']['factor_of_best']}"
-          f" times the best start's (or under {_pct(st['criterion']['floor'])}).", "",
+          f" times the best start's (or under {_pct(st['criterion']['floor'])}, or under the "
+          f"data's own scatter about smooth branches, {_pct(st['criterion']['data_scatter'])}).",
+          "",
           "| start | status | seconds | branch RMS | max | missed | Hopf | fold | adequate |",
           "|---|---|---|---|---|---|---|---|---|"]
     for r in st["records"]:

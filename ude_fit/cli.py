@@ -73,6 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--training", default="periodic", choices=("trajectory", "periodic"),
                    help="NN loss: one-period trajectories from the measured states (the "
                    "paper's) or closed periodic orbits with stability labels (default)")
+    f.add_argument("--mechanistic", default="equation", choices=("equation", "periodic"),
+                   help="mechanistic identification: least squares on the equation error "
+                   "(default), or that refined by output error on the periodic orbits")
     f.add_argument("--starts", type=_positive_int("--starts"), default=5,
                    help="random starts; the best adequate one is kept (default 5)")
     f.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -200,6 +203,7 @@ def cmd_fit(args, argv) -> int:
         raise UsageError("--reference-hopf/--reference-fold apply to --system flutter only")
     opts = FitOptions(system=args.system, approximator=args.approximator,
                       training=args.training, starts=args.starts, seed=args.seed,
+                      mechanistic=args.mechanistic,
                       train=TrainConfig(width=args.width, depth=args.depth))
     progress = _Progress(args.quiet)
     progress._say(f"{len(ds)} orbits loaded ({args.system}); fitting")
