@@ -51,3 +51,11 @@ def lee2020_dir() -> Path:
             return Path(c)
     pytest.skip("lee2020 data not found (set LEE2020_DIR to the directory holding model2/; "
                 f"looked in: {', '.join(str(c) for c in candidates if c)})")
+
+
+@pytest.fixture(scope="session")
+def flutter_truth() -> dict:
+    """The aerofoil rig's true Hopf and (lowest) fold airspeeds, from its own continuation."""
+    from tests.ude_fixtures import flutter_branch
+    br = flutter_branch()
+    return {"hopf": br.hopf[0], "fold": min(f["V"] for f in br.folds)}

@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from tests.ude_fixtures import flutter_branch, write_truth_campaign
+from tests.ude_fixtures import write_truth_campaign
 from ude_fit import (DataError, Diverged, FitOptions, TrainConfig, fit, hopf_point, load,
                      load_model)
 from ude_fit import _fit as fit_module
@@ -24,20 +24,14 @@ AIRSPEEDS = (17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0, 23.6)
 
 
 @pytest.fixture(scope="module")
-def truth():
-    br = flutter_branch()
-    return {"hopf": br.hopf[0], "fold": min(f["V"] for f in br.folds)}
-
-
-@pytest.fixture(scope="module")
-def flutter_fit(tmp_path_factory, truth):
+def flutter_fit(tmp_path_factory, flutter_truth):
     d = tmp_path_factory.mktemp("ude_fit")
     data = d / "flutter.h5"
     write_truth_campaign(data, "flutter", airspeeds=AIRSPEEDS)
     out = d / "out"
     rc = cli.main(["fit", str(data), "--system", "flutter", "--starts", "5", "--seed", "0",
-                   "--reference-hopf", repr(truth["hopf"]), "--reference-fold",
-                   repr(truth["fold"]), "--out", str(out), "--quiet"])
+                   "--reference-hopf", repr(flutter_truth["hopf"]), "--reference-fold",
+                   repr(flutter_truth["fold"]), "--out", str(out), "--quiet"])
     with open(out / "metrics.json") as fh:
         metrics = json.load(fh)
     return {"rc": rc, "data": data, "out": out, "metrics": metrics}
@@ -62,11 +56,11 @@ def test_ude_branch_error_at_most_1_percent_and_below_mechanistic(flutter_fit):
     assert m["ude"]["trajectory_rms"] < m["mechanistic"]["trajectory_rms"]
 
 
-def test_ude_hopf_and_fold_within_0_1_mps_of_truth(flutter_fit, truth):
+def test_ude_hopf_and_fold_within_0_1_mps_of_truth(flutter_fit, flutter_truth):
     m = flutter_fit["metrics"]["ude"]
-    assert m["hopf"]["reference"] == pytest.approx(truth["hopf"])
-    assert abs(m["hopf"]["model"] - truth["hopf"]) <= 0.1
-    assert abs(m["fold"]["model"] - truth["fold"]) <= 0.1
+    assert m["hopf"]["reference"] == pytest.approx(flutter_truth["hopf"])
+    assert abs(m["hopf"]["model"] - flutter_truth["hopf"]) <= 0.1
+    assert abs(m["fold"]["model"] - flutter_truth["fold"]) <= 0.1
 
 
 def test_at_least_4_of_5_starts_adequate(flutter_fit):

@@ -11,7 +11,7 @@ import json
 
 import pytest
 
-from tests.ude_fixtures import flutter_branch, write_truth_campaign
+from tests.ude_fixtures import write_truth_campaign
 from ude_fit import cli
 
 AIRSPEEDS = (18.0, 19.5, 21.0, 22.5, 23.6)
@@ -19,13 +19,7 @@ SIGMAS = (0.02, 0.04)
 
 
 @pytest.fixture(scope="module")
-def truth():
-    br = flutter_branch()
-    return {"hopf": br.hopf[0], "fold": min(f["V"] for f in br.folds)}
-
-
-@pytest.fixture(scope="module")
-def noisy_fits(tmp_path_factory, truth):
+def noisy_fits(tmp_path_factory, flutter_truth):
     d = tmp_path_factory.mktemp("ude_noise")
     out = {}
     for sigma in SIGMAS:
@@ -34,8 +28,10 @@ def noisy_fits(tmp_path_factory, truth):
         for approx in ("nn", "gp"):
             o = d / f"{approx}_{sigma}"
             rc = cli.main(["fit", str(data), "--system", "flutter", "--approximator", approx,
-                           "--starts", "2" if approx == "nn" else "1", "--reference-hopf", repr(truth["hopf"]),
-                           "--reference-fold", repr(truth["fold"]), "--out", str(o), "--quiet"])
+                           "--starts", "2" if approx == "nn" else "1",
+                           "--reference-hopf", repr(flutter_truth["hopf"]),
+                           "--reference-fold", repr(flutter_truth["fold"]),
+                           "--out", str(o), "--quiet"])
             with open(o / "metrics.json") as fh:
                 out[(approx, sigma)] = {"rc": rc, "metrics": json.load(fh),
                                         "report": (o / "report.md").read_text()}
@@ -56,7 +52,7 @@ def test_both_approximators_fit_noisy_data(noisy_fits, approx, sigma):
     assert m["ude"]["branch_rms"] <= 0.03
     # ... but the Hopf point lies beyond the last measured airspeed (23.6 m/s): it is an
     # extrapolation, and noise moves it (measured: up to several m/s at sigma = 0.04).
-    # It is reported with its error against the truth, not bounded here.
+    # It is reported with its error against the flutter_truth, not bounded here.
     assert m["ude"]["hopf"]["reference"] is not None and m["ude"]["hopf"]["error"] is not None
     assert "| Hopf airspeed (m/s) |" in r["report"]
 
