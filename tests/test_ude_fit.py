@@ -186,3 +186,38 @@ def test_empty_dataset_is_an_error(flutter_fit):
     ds = load([flutter_fit["data"]], "flutter")
     with pytest.raises(DataError, match="empty"):
         fit(ds.select(np.zeros(len(ds), bool)), FitOptions("flutter"))
+
+
+# ---- the paper's trajectory training, integrated by diffrax ----------------------------------
+
+def test_diffrax_trajectory_equals_the_shooting_map():
+    import jax.numpy as jnp
+
+    from ude_fit import UDE, Drive, flutter_qs
+    from ude_fit._flow import diffrax_samples, rk4_orbit
+    model, drive = UDE(flutter_qs()), Drive.of(20.0)
+    y0 = jnp.array([0.01, 0.02, 0.0, 0.1])
+    _, ys = rk4_orbit(model, y0, 0.42, drive, 32 * 4)
+    assert np.max(np.abs(diffrax_samples(model, y0, 0.42, drive, 32, 4) - ys[::4])) < 1e-14
+
+
+def test_trajectory_training_lowers_the_trajectory_error(tmp_path):
+    import equinox as eqx
+    import jax
+
+    from ude_fit import UDE, identify, train_ude, training_data
+    from ude_fit._train import _trainable_spec, _trajectory_loss, new_correction
+    write_truth_campaign(tmp_path / "f.h5", "flutter", airspeeds=(18.0, 21.0, 23.6))
+    data = training_data(load([tmp_path / "f.h5"], "flutter"))
+    mech, _ = identify(data, "flutter")
+    cfg = TrainConfig(equation_steps=0, adam_steps=50, lbfgs_steps=10).for_system("flutter")
+    key = jax.random.PRNGKey(1)
+    model, info = train_ude(UDE(mech), data, key=key, cfg=cfg, training="trajectory")
+    assert info["training"] == "trajectory"
+
+    def loss(m):
+        tr, st = eqx.partition(m.correction, _trainable_spec(m.correction))
+        return float(_trajectory_loss({"corr": tr}, st, mech, data, cfg.substeps))
+
+    fresh = UDE(mech, new_correction(UDE(mech), data, key, cfg))
+    assert loss(model) < 0.5 * loss(fresh)

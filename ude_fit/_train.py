@@ -5,7 +5,8 @@ Three losses, used in this order by :func:`train_ude`:
 * ``equation``: the correction against the residual force the mechanistic model
   leaves on every sample of the averaged orbits (no simulation; a fast start).
 * ``trajectory`` (the paper's): integrate the UDE over one period from each
-  measured initial state and compare the states at the measured phases.
+  measured initial state (diffrax, classical RK4 steps, checkpointed reverse mode)
+  and compare the states at the measured phases.
 * ``periodic`` (beyond the paper): every orbit gets its own initial state and,
   for the autonomous aerofoil, its own period as unknowns; the loss asks for a
   *closed* model orbit that matches the measured one, with the stability the
@@ -31,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._flow import rk4_orbit
+from ._flow import diffrax_samples, rk4_orbit
 from ._identify import TrainingData, residual_forces
 from ._models import UDE, MLPCorrection, feature_scaling
 
@@ -135,7 +136,7 @@ def _trajectory_loss(params, static, mech, data: TrainingData, sub: int):
     n = data.ys.shape[1]
 
     def one(ys, T, drive):
-        _, sim = _simulate(model, ys[0], T, drive, n, sub)
+        sim = diffrax_samples(model, ys[0], T, drive, n, sub)
         return jnp.mean(((sim - ys) / data.y_scale) ** 2)
 
     return jnp.mean(jax.vmap(one)(data.ys, data.period, data.drive))
