@@ -61,7 +61,9 @@ class FitOptions:
             raise ValueError(f"starts must be at least 1, not {self.starts}")
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["train"] = asdict(self.train.for_system(self.system))   # the values actually used
+        return d
 
 
 @dataclass
@@ -184,11 +186,17 @@ def data_scatter(ds: OrbitDataset) -> float:
     return float(np.sqrt(np.mean(np.square(res))) / a_max) if res else 0.0
 
 
-def _is_adequate(m, best_rms, mech_rms, opts, scatter: float = 0.0) -> bool:
+def _is_adequate(m, best_rms, mech_m, opts, scatter: float = 0.0) -> bool:
     if m is None or m["branch_rms"] is None or m["missed"] > 0:
         return False
+    mech_rms = mech_m.get("branch_rms")
     if mech_rms is not None and m["branch_rms"] >= mech_rms:
         return False
+    # oscillator: better than the mechanistic model at every frequency, not just overall
+    for f, v in (mech_m.get("per_frequency") or {}).items():
+        mine = m["per_frequency"].get(f, {}).get("branch_rms")
+        if v["branch_rms"] is not None and (mine is None or mine >= v["branch_rms"]):
+            return False
     return m["branch_rms"] <= max(opts.adequacy_factor * best_rms, opts.adequacy_floor, scatter)
 
 
@@ -281,7 +289,7 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
                    default=np.inf)
     for s in starts:
         s["adequate"] = (s["status"] == "ok"
-                         and _is_adequate(s["metrics"], best_rms, mech_m["branch_rms"], opts,
+                         and _is_adequate(s["metrics"], best_rms, mech_m, opts,
                                           scatter))
     best = None
     if ok:
