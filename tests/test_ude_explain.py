@@ -20,7 +20,8 @@ def states(tmp_path_factory):
     ys = np.asarray(data.ys)
     n_o, n, _ = ys.shape
     S = {"h": ys[:, :, 0].ravel(), "al": ys[:, :, 1].ravel(), "hd": ys[:, :, 2].ravel(),
-         "ad": ys[:, :, 3].ravel(), "V": np.repeat(np.asarray(data.drive.param), n)}
+         "ad": ys[:, :, 3].ravel(), "V": np.repeat(np.asarray(data.drive.param), n),
+         "omega": np.repeat(np.asarray(data.drive.omega), n), "n": n}
     return S, np.repeat(np.arange(n_o), n)
 
 
@@ -56,3 +57,30 @@ def test_pure_noise_gives_no_significant_effect(states):
     for eq in (0, 1):
         sel = select(flutter_library(S), S, y, groups, equation=eq, seed=0)
         assert not sel.significant and sel.effects == []
+
+
+def test_lag_is_the_periodic_solution_of_the_first_order_lag(states):
+    from ude_fit._explain import lag
+    S, groups = states
+    n = S["n"]
+    phi = 2 * np.pi * np.arange(n) / n
+    x = np.tile(np.cos(phi) + 0.3 * np.sin(3 * phi), S["h"].size // n)
+    tau = 0.05
+    z = lag(S, x, tau).reshape(-1, n)
+    w = S["omega"].reshape(-1, n)[:, 0]
+    for j in range(z.shape[0]):
+        expect = (np.real(np.exp(1j * phi) / (1 + 1j * w[j] * tau))
+                  + 0.3 * np.real(-1j * np.exp(3j * phi) / (1 + 3j * w[j] * tau)))
+        assert np.max(np.abs(z[j] - expect)) < 1e-12
+
+
+def test_planted_lag_state_found_with_its_time_constant(states):
+    from ude_fit._explain import lag
+    S, groups = states
+    tau = 0.5 * 2 * np.pi / float(np.median(S["omega"]))      # on the library's grid
+    y = -3.0 * lag(S, S["V"] * S["hd"], tau)
+    sel = select(flutter_library(S), S, y, groups, equation=0, seed=0)
+    top = sel.effects[0]
+    assert top["name"].startswith("aerodynamic lag state in heave")
+    assert top["shape"] == pytest.approx(tau)
+    assert top["coefficients"][0] == pytest.approx(-3.0, rel=1e-6)

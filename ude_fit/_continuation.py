@@ -501,10 +501,12 @@ def orbit_at(model: UDE, branch: Branch, param: float, stable: bool | None, *, s
 
 
 def trace_flutter_through(model: UDE, y0, T: float, V: float, *, v_range, amp_max: float,
-                          scales, n: int = 200, max_points: int = 300) -> Branch | None:
+                          scales, n: int = 200, max_points: int = 300,
+                          known=None) -> Branch | None:
     """The branch through a given orbit guess (y0 with h'(0) ~ 0, period T) at airspeed V,
     continued both ways: for branches not connected to the Hopf point (isolas), which a
-    fitted model can have. None if no periodic orbit is found near the guess."""
+    fitted model can have. None if no periodic orbit is found near the guess, or if
+    ``known(V, amplitude)`` says the orbit found lies on a branch already traced."""
     ns = model.n_state
     su = np.concatenate([np.asarray(scales, float), [T, max(1.0, abs(V))]])
     prob = _Autonomous(model, su, n)
@@ -517,6 +519,8 @@ def trace_flutter_through(model: UDE, y0, T: float, V: float, *, v_range, amp_ma
     y1, T1, _ = prob.unpack(first.us)
     if np.max(np.abs(first.ys[:, 0])) < 1e-3 * scales[0] or not (T / 2 < T1 < 2 * T):
         return None                     # collapsed onto the equilibrium or another period
+    if known is not None and known(V, first_harmonic_amplitude(first.ys[:, 0])):
+        return None
 
     def stop(problem, pt):
         y, TT, VV = problem.unpack(pt.us)

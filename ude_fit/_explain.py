@@ -42,8 +42,27 @@ def _sat(x, d):
     return np.clip(x, -d, d)
 
 
+def lag(S: dict, x: np.ndarray, tau: float) -> np.ndarray:
+    """z with tau z' + z = x along each periodic orbit (its steady periodic solution):
+    harmonic k of x divided by 1 + i k omega tau. ``S["n"]`` samples per orbit, uniform in
+    phase; ``S["omega"]`` the orbit's angular frequency at each sample. This is how a hidden
+    first-order state (an aerodynamic lag, a coil current) shows on a periodic orbit."""
+    n = int(S["n"])
+    X = np.fft.rfft(np.asarray(x, float).reshape(-1, n), axis=1)
+    w = np.asarray(S["omega"]).reshape(-1, n)[:, :1]
+    k = np.arange(X.shape[1])[None, :]
+    return np.fft.irfft(X / (1 + 1j * k * w * tau), n=n, axis=1).ravel()
+
+
+def _tau_grid(S: dict) -> tuple:
+    period = 2 * np.pi / float(np.median(S["omega"]))
+    return tuple(float(x) for x in period * np.array([0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0,
+                                                      2.0]))
+
+
 def flutter_library(S: dict) -> list[Effect]:
-    """Candidate effects for the aerofoil; S has h, al, hd, ad, V (arrays over samples)."""
+    """Candidate effects for the aerofoil. S: arrays over the samples h, al, hd, ad, V,
+    omega (the orbit's angular frequency), and n (samples per orbit, orbit-major order)."""
     al_max = float(np.max(np.abs(S["al"]))) or 1.0
     fp_grid = tuple(float(x) for x in al_max * np.array([0.02, 0.05, 0.1, 0.15, 0.2, 0.3,
                                                         0.4, 0.5]))
@@ -62,6 +81,11 @@ def flutter_library(S: dict) -> list[Effect]:
         Effect("airspeed-dependent heave terms", 0, ("V h", "V^2 h", "V h'"),
                lambda S, _: np.stack([S["V"] * S["h"], S["V"] ** 2 * S["h"],
                                       S["V"] * S["hd"]], 1)),
+        Effect("aerodynamic lag state in heave (first-order lag of V h', V^2 alpha)", 0,
+               ("lag_tau(V h')", "lag_tau(V^2 alpha)"),
+               lambda S, t: np.stack([lag(S, S["V"] * S["hd"], t),
+                                      lag(S, S["V"] ** 2 * S["al"], t)], 1),
+               _tau_grid(S), "tau (s)"),
         Effect("pitch coupling in heave", 0, ("alpha", "h alpha"),
                lambda S, _: np.stack([S["al"], S["h"] * S["al"]], 1)),
         Effect("pitch freeplay", 1, ("sat(alpha, delta)",),
@@ -78,6 +102,11 @@ def flutter_library(S: dict) -> list[Effect]:
         Effect("airspeed-dependent pitch terms", 1, ("V alpha", "V^2 alpha", "V alpha'"),
                lambda S, _: np.stack([S["V"] * S["al"], S["V"] ** 2 * S["al"],
                                       S["V"] * S["ad"]], 1)),
+        Effect("aerodynamic lag state in pitch (first-order lag of V h', V^2 alpha)", 1,
+               ("lag_tau(V h')", "lag_tau(V^2 alpha)"),
+               lambda S, t: np.stack([lag(S, S["V"] * S["hd"], t),
+                                      lag(S, S["V"] ** 2 * S["al"], t)], 1),
+               _tau_grid(S), "tau (s)"),
         Effect("heave coupling in pitch", 1, ("h", "h alpha"),
                lambda S, _: np.stack([S["h"], S["h"] * S["al"]], 1)),
     ]

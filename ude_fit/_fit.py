@@ -130,9 +130,13 @@ def _add_isolas(model, diagram, ranges, scales, ds, max_isolas: int = 6, near: f
         if sol is not None and abs(sol["amplitude"] - o.amplitude) <= near * a_max:
             continue
         y0 = np.concatenate([start["q"][i, 0], start["qdot"][i, 0]])
+        def known(V, amp):
+            return any(abs(a - amp) <= 5e-3 * a_max
+                       for b in diagram.values() for a, _ in b.amplitudes_at(V))
+
         b = trace_flutter_through(model, y0, 1.0 / o.frequency, o.parameter,
                                   v_range=ranges["v_range"], amp_max=ranges["amp_max"],
-                                  scales=scales)
+                                  scales=scales, known=known)
         if b is not None and b.param.size > 1:
             diagram[f"flutter/{len(diagram)}"] = b
 
