@@ -190,8 +190,20 @@ def data_scatter(ds: OrbitDataset) -> float:
     return float(np.sqrt(np.mean(np.square(res))) / a_max) if res else 0.0
 
 
+def fold_count(m: dict) -> int:
+    """Folds in a model's diagram (every branch, every frequency)."""
+    f = m.get("folds") or []
+    n = sum(len(v) for v in f.values()) if isinstance(f, dict) else len(f)
+    return n + len(m.get("isola_folds") or [])
+
+
 def _is_adequate(m, best_rms, mech_m, opts, scatter: float = 0.0) -> bool:
     if m is None or m["branch_rms"] is None or m["missed"] > 0:
+        return False
+    # qualitatively the mechanistic model's diagram: at most one extra fold per branch
+    # family (a network that snakes through the points is not a model of them)
+    families = len(mech_m["folds"]) if isinstance(mech_m.get("folds"), dict) else 1
+    if fold_count(m) > fold_count(mech_m) + families:
         return False
     mech_rms = mech_m.get("branch_rms")
     if mech_rms is not None and m["branch_rms"] >= mech_rms:
@@ -323,7 +335,8 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
                    "criterion": {"missed": 0, "below_mechanistic": True,
                                  "factor_of_best": opts.adequacy_factor,
                                  "floor": opts.adequacy_floor,
-                                 "data_scatter": scatter},
+                                 "data_scatter": scatter,
+                                 "max_extra_folds_per_family": 1},
                    "records": [_public(s) for s in starts]},
         "ranges": ranges,
         "seconds": time.perf_counter() - t_start,
@@ -341,6 +354,7 @@ def _public(s: dict) -> dict:
     if m:
         out["metrics"] = {k: m[k] for k in ("branch_rms", "branch_max", "missed",
                                             "trajectory_rms", "hopf", "fold")}
+        out["metrics"]["fold_count"] = fold_count(m)
     info = out.get("info")
     if info:
         out["info"] = {k: v for k, v in info.items() if isinstance(v, (int, float, str, bool))}

@@ -166,7 +166,7 @@ def with_reference(loc: dict, reference: dict, source: str) -> dict:
         out[key] = {"model": m, "reference": r,
                     "error": (m - r) if (m is not None and r is not None) else None,
                     "reference_source": source if r is not None else None}
-    if isinstance(loc.get("folds"), dict):
+    if "folds" in loc:
         out["folds"] = loc["folds"]
     if "isolas" in loc:
         out["isolas"] = loc["isolas"]

@@ -87,13 +87,18 @@ def render(metrics: dict, figures: dict) -> str:
           f" times the best start's (or under {_pct(st['criterion']['floor'])}, or under the "
           f"data's own scatter about smooth branches, {_pct(st['criterion']['data_scatter'])}).",
           "",
-          "| start | status | seconds | branch RMS | max | missed | Hopf | fold | adequate |",
-          "|---|---|---|---|---|---|---|---|---|"]
+          "A start must also be qualitatively the mechanistic model's diagram: at most one "
+          "fold more per branch family (one family for the aerofoil, one per frequency for "
+          "the oscillator).", "",
+          "| start | status | seconds | branch RMS | max | missed | folds | Hopf | fold | "
+          "adequate |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
     for r in st["records"]:
         m = r.get("metrics") or {}
         L.append(f"| {r['start']} | {r['status']} | {r['seconds']:.1f} | "
                  f"{_pct(m.get('branch_rms'))} | {_pct(m.get('branch_max'))} | "
-                 f"{m.get('missed', '—')} | {_loc(m.get('hopf'))} | {_loc(m.get('fold'))} | "
+                 f"{m.get('missed', '—')} | {m.get('fold_count', '—')} | "
+                 f"{_loc(m.get('hopf'))} | {_loc(m.get('fold'))} | "
                  f"{'yes' if r.get('adequate') else 'no'} |")
     for d_ in st["dropped"]:
         L.append(f"\nStart {d_['start']} dropped: {d_['reason']}.")

@@ -57,6 +57,7 @@ class TrainConfig:
     stability_weight: float = 10.0
     stability_margin: float = 0.02
     init_scale: float = 1e-2
+    weight_decay: float = 0.0    # periodic training: penalty on the mean square NN weight
 
     def for_system(self, system: str) -> "TrainConfig":
         """This configuration with every None field set to ``system``'s default."""
@@ -166,9 +167,18 @@ def _periodic_objective(model, params, data: TrainingData, sub: int, weights):
     return jnp.mean(jax.vmap(one)(data.ys, y0, T, data.drive, data.label))
 
 
+def _weight_penalty(corr_params):
+    """Mean square of the network's weight matrices (not biases): weight decay, which keeps
+    the correction smooth between the measured orbits."""
+    mats = [x for x in jax.tree_util.tree_leaves(corr_params)
+            if isinstance(x, jax.Array) and x.ndim == 2]
+    return sum(jnp.mean(m ** 2) for m in mats) / max(1, len(mats))
+
+
 def _periodic_loss(params, static, mech, data: TrainingData, sub: int, weights):
     model = UDE(mech, eqx.combine(params["corr"], static))
-    return _periodic_objective(model, params, data, sub, weights)
+    loss = _periodic_objective(model, params, data, sub, weights[:3])
+    return loss + weights[3] * _weight_penalty(params["corr"])
 
 
 def _mech_with(mech, fields, base, scale, delta):
@@ -311,7 +321,8 @@ def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training
         params = {"corr": params["corr"], "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
         if model.system == "flutter":
             params["dT"] = jnp.zeros(data.period.shape)
-        weights = (cfg.closure_weight, cfg.stability_weight, cfg.stability_margin)
+        weights = (cfg.closure_weight, cfg.stability_weight, cfg.stability_margin,
+                   cfg.weight_decay)
         params, v = minimize(_periodic_loss, params, (static, mech, data, cfg.substeps, weights),
                              adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
                              lr=cfg.learning_rate, progress=progress, stage="periodic")

@@ -56,6 +56,17 @@ def _finite_float(name):
     return conv
 
 
+def _nonnegative_float(name):
+    finite = _finite_float(name)
+
+    def conv(s):
+        v = finite(s)
+        if v < 0:
+            raise argparse.ArgumentTypeError(f"{name} must not be negative, not {s!r}")
+        return v
+    return conv
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="ude-fit", description="Fit mechanistic and universal-differential-equation "
                 "models to logged limit cycles, trace their bifurcation diagrams, and report.")
@@ -83,6 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="hidden units per layer of the NN (default 12)")
     f.add_argument("--depth", type=_positive_int("--depth"), default=2,
                    help="hidden layers of the NN (default 2)")
+    f.add_argument("--weight-decay", type=_nonnegative_float("--weight-decay"), default=0.0,
+                   metavar="W", help="periodic training: penalty on the mean square network "
+                   "weight, for smoother corrections on few noisy points (default 0)")
     f.add_argument("--reference-hopf", type=_finite_float("--reference-hopf"), metavar="V",
                    help="known Hopf airspeed (m/s) for the error figures")
     f.add_argument("--reference-fold", type=_finite_float("--reference-fold"), metavar="V",
@@ -204,7 +218,8 @@ def cmd_fit(args, argv) -> int:
     opts = FitOptions(system=args.system, approximator=args.approximator,
                       training=args.training, starts=args.starts, seed=args.seed,
                       mechanistic=args.mechanistic,
-                      train=TrainConfig(width=args.width, depth=args.depth))
+                      train=TrainConfig(width=args.width, depth=args.depth,
+                                        weight_decay=args.weight_decay))
     progress = _Progress(args.quiet)
     progress._say(f"{len(ds)} orbits loaded ({args.system}); fitting")
     res = fit(ds, opts, reference=reference or None, progress=progress)
