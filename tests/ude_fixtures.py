@@ -54,14 +54,27 @@ DEFAULT_RECORD_S = {"flutter": 4.0, "oscillator": 1.0}
 
 # ---- truth, cached --------------------------------------------------------------------------
 
-@lru_cache(maxsize=4)
-def flutter_branch(V_max: float = 26.0):
-    return flutter_lco_branch(V_max=V_max)
+START_FROM_CLEAN = ("freeplay", "heave_friction", "pitch_friction")
+
+
+@lru_cache(maxsize=8)
+def flutter_branch(V_max: float = 26.0, effects: tuple = (), plugin: str | None = None):
+    """The truth branch; ``effects``: ("name=value", ...) the rig is started with, and
+    ``plugin`` its --effect-plugin spec (FILE.py:FUNC; it must vanish to first order at
+    rest). Effects that change rest itself (no usable Hopf point) start from the
+    effect-free branch's stable orbit at 24 m/s (see flutter_lco_branch's start_V)."""
+    start = 24.0 if any(e.split("=")[0] in START_FROM_CLEAN for e in effects) else None
+    func = None
+    if plugin:
+        from rig_sim.physics.effects import load_plugin
+        func = load_plugin(plugin)
+    return flutter_lco_branch(V_max=V_max, effects=list(effects) or None, start_V=start,
+                              plugin=func)
 
 
 @lru_cache(maxsize=16)
-def oscillator_curve(freq_hz: float):
-    return oscillator_scurve(freq_hz)
+def oscillator_curve(freq_hz: float, effects: tuple = ()):
+    return oscillator_scurve(freq_hz, effects=list(effects) or None)
 
 
 def series_of_samples(H: np.ndarray) -> np.ndarray:
@@ -94,19 +107,23 @@ def _rk4_period(deriv, y0: np.ndarray, T: float, n: int, drive=None) -> np.ndarr
     return H
 
 
-def flutter_truth_orbits(airspeeds) -> list[dict]:
+def flutter_truth_orbits(airspeeds, effects: tuple = (), plugin: str | None = None) -> list[dict]:
     """Every truth orbit at each airspeed: dicts with parameter, frequency, stable,
     amplitude, coeffs (2, 15) (heave m, pitch rad; phase origin at the heave extremum the
     truth starts from), state, period, floquet_max, pitch_amp, heave_dc."""
     V_max = max(26.0, float(np.max(airspeeds)) + 0.5)
-    branch = flutter_branch(V_max)
+    branch = flutter_branch(V_max, tuple(effects), plugin)
     E = branch.effects
+    force = branch._problem.plugin
     out = []
     for V in airspeeds:
         Kp = flutter_kernel_params(FlutterParams(), float(V))
         for orb in flutter_orbit_at(float(V), branch):
-            H = _rk4_period(lambda y, dy, t: flutter_deriv(y, dy, 0.0, 0.0, Kp, E),
-                            orb["state"], orb["period"], branch.n_steps)
+            def deriv(y, dy, t):
+                f = (0.0, 0.0) if force is None else force(0.0, y[0:2].copy(),
+                                                           y[3:5].copy(), None)
+                flutter_deriv(y, dy, f[0], f[1], Kp, E)
+            H = _rk4_period(deriv, orb["state"], orb["period"], branch.n_steps)
             out.append(dict(parameter=float(V), frequency=1.0 / orb["period"],
                             stable=bool(orb["stable"]), amplitude=orb["heave_amp"],
                             pitch_amp=orb["pitch_amp"], heave_dc=orb["heave_dc"],
@@ -129,7 +146,7 @@ def oscillator_forcings(curve, per_freq: int) -> list[float]:
     return [0.5 * lo, *map(float, inside), 1.5 * hi]
 
 
-def oscillator_truth_orbits(freqs, per_freq: int) -> list[dict]:
+def oscillator_truth_orbits(freqs, per_freq: int, effects: tuple = ()) -> list[dict]:
     """Truth orbits of the forced oscillator: dicts with parameter (Phi, m/s^2), frequency,
     stable, amplitude, coeffs (1, 15) and forcing (15,) = Phi cos(phi), both in the frame
     of the truth (t = 0 where the forcing Phi cos(w t) peaks), state, floquet_max."""
@@ -137,7 +154,7 @@ def oscillator_truth_orbits(freqs, per_freq: int) -> list[dict]:
     Kp = oscillator_kernel_params(p)
     out = []
     for f in freqs:
-        curve = oscillator_curve(float(f))
+        curve = oscillator_curve(float(f), tuple(effects))
         w = 2.0 * math.pi * float(f)
         for Phi in oscillator_forcings(curve, per_freq):
             for orb in oscillator_orbit_at(Phi, curve):
@@ -177,10 +194,12 @@ def _set_targets(board: Board, coeffs) -> None:
 
 
 def run_board_on_orbit(system: str, truth: dict, *, sigma: float, seed: int,
-                       record_s: float) -> tuple[dict, dict, float]:
+                       record_s: float, effects: tuple = (),
+                       plugin: str | None = None) -> tuple[dict, dict, float]:
     """Hold the board on a truth orbit; returns (timeseries, fourier {ch: mean, var},
     board frequency estimate)."""
-    b = Board(RigOptions(kind=system, sigma=sigma, seed=seed))
+    b = Board(RigOptions(kind=system, sigma=sigma, seed=seed, effects=list(effects),
+                         plugin=plugin))
     if system == "flutter":
         kp, kd = FLUTTER_GAINS
         b.set("parameter", truth["parameter"])
@@ -282,7 +301,8 @@ def _point_doc(i: int, system: str, truth: dict, fourier: dict, timeseries: dict
 
 def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_freq=None,
                          sigma: float = 0.0, seed: int = 0, record_s=None,
-                         keep_record: bool = True) -> list[dict]:
+                         keep_record: bool = True, effects: tuple = (),
+                         plugin: str | None = None) -> list[dict]:
     """Write a campaign file of the rig's true periodic orbits; returns the truth records
     (one per point, in file order; see flutter_truth_orbits / oscillator_truth_orbits).
 
@@ -292,12 +312,17 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
     Raw records are taken (board held on the orbit) when sigma > 0 or record_s > 0;
     record_s defaults to 4 s (flutter) or 1 s (oscillator) of rig time. keep_record=False
     stores only the board's Fourier means of such a run (as a campaign without records).
+    effects: ("name=value", ...) catalogue effects the rig (and its truth) is started with;
+    the campaign file does not mention them (they are undeclared physics). plugin: the
+    rig's --effect-plugin FILE.py:FUNC (flutter only; time-invariant, compilable by numba).
     """
+    effects = tuple(effects)
     if system == "flutter":
-        truths = flutter_truth_orbits(DEFAULT_AIRSPEEDS if airspeeds is None else airspeeds)
+        truths = flutter_truth_orbits(DEFAULT_AIRSPEEDS if airspeeds is None else airspeeds,
+                                      effects, plugin)
     elif system == "oscillator":
         truths = oscillator_truth_orbits(DEFAULT_FREQS if freqs is None else freqs,
-                                         4 if per_freq is None else int(per_freq))
+                                         4 if per_freq is None else int(per_freq), effects)
     else:
         raise ValueError(f"system {system!r}: flutter or oscillator")
     if record_s is None:
@@ -306,7 +331,8 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
     for i, tr in enumerate(truths):
         if record_s > 0:
             ts, fourier, f_est = run_board_on_orbit(system, tr, sigma=sigma, seed=seed + i,
-                                                    record_s=record_s)
+                                                    record_s=record_s, effects=effects,
+                                                    plugin=plugin)
             freq = f_est if system == "flutter" else tr["frequency"]
             navg, host = 10, tr["parameter"]
             if not keep_record:

@@ -1,20 +1,23 @@
 """Explaining a mechanistic model's residual as a sparse sum of physically named terms.
 
-The residual is what the mechanistic model leaves on every sample of the averaged orbits
-(:func:`ude_fit.residual_forces`): a generalised force per equation. Each candidate
-*effect* (cubic heave stiffness, Coulomb friction in heave, pitch freeplay, ...) is one or
-more columns evaluated on the same samples. Selection, per equation:
+On the Fourier-averaged orbits the mechanistic model is linear in its parameters
+(equation error, see ``_identify.regression``): per equation, ``b = A theta`` on every
+sample. Its residual is what the least-squares fit of ``A`` leaves. Each candidate
+*effect* of ``_library`` adds columns; selection, per equation:
 
-* forward stepwise least squares over effects, scored by cross-validation that leaves
-  whole orbits out (samples of one orbit are not independent), stopping by the one-
-  standard-error rule: the smallest model whose CV error is within one standard error of
-  the best one's. No hand-set threshold per case.
-* an effect with a shape parameter (the freeplay half-width, the friction's smoothing
-  velocity, a lag's time constant) enters with the value the CV error prefers on a grid.
-* coefficient uncertainty by a bootstrap over orbits; the share of the residual each
-  selected effect explains (drop-one reduction of the explained sum of squares).
-* "no significant missing effect" when no effect lowers the CV error by more than its
-  standard error.
+* forward stepwise least squares over effects, the mechanistic columns always in (so an
+  effect's coefficient is estimated jointly with the parameters it competes with, e.g.
+  a cubic spring with the linear one), scored by cross-validation that leaves whole
+  orbits out (samples of one orbit are not independent), stopping by the one-standard-
+  error rule: the smallest model whose CV error is within one standard error of the
+  best one's. No hand-set threshold per case.
+* an effect with a shape parameter (a freeplay half-width, a lag's time constant)
+  enters with the value the CV error prefers on a grid.
+* coefficient uncertainty by a bootstrap over orbits; each selected effect's share of
+  the mechanistic residual (what adding it removed, in the order selected) and of the
+  equation's whole generalised force (what ranks effects across equations).
+* "no significant missing effect" when no effect lowers the CV error by more than the
+  baseline's standard error.
 """
 
 from __future__ import annotations
@@ -23,103 +26,21 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-HEAVE_FRICTION_VS = 1e-3     # m/s: smoothing of sign(h') (tanh); below the orbits' speeds
-PITCH_FRICTION_VS = 1e-2     # rad/s
+from ._identify import TrainingData, regression
+from ._library import AERO, FREQ, LIBRARY, LINEAR, Effect, columns, sample_states
 
-
-@dataclass(frozen=True)
-class Effect:
-    """A named physical effect: columns over the sample states, per equation."""
-    name: str
-    equation: int                     # 0: heave (or the oscillator's only equation), 1: pitch
-    terms: tuple[str, ...]            # human-readable formulas of the columns
-    columns: object                   # callable(S: dict, shape) -> (N, len(terms))
-    shapes: tuple = (None,)           # grid of the shape parameter (None: none)
-    shape_name: str = ""
-
-
-def _sat(x, d):
-    return np.clip(x, -d, d)
-
-
-def lag(S: dict, x: np.ndarray, tau: float) -> np.ndarray:
-    """z with tau z' + z = x along each periodic orbit (its steady periodic solution):
-    harmonic k of x divided by 1 + i k omega tau. ``S["n"]`` samples per orbit, uniform in
-    phase; ``S["omega"]`` the orbit's angular frequency at each sample. This is how a hidden
-    first-order state (an aerodynamic lag, a coil current) shows on a periodic orbit."""
-    n = int(S["n"])
-    X = np.fft.rfft(np.asarray(x, float).reshape(-1, n), axis=1)
-    w = np.asarray(S["omega"]).reshape(-1, n)[:, :1]
-    k = np.arange(X.shape[1])[None, :]
-    return np.fft.irfft(X / (1 + 1j * k * w * tau), n=n, axis=1).ravel()
-
-
-def _tau_grid(S: dict) -> tuple:
-    period = 2 * np.pi / float(np.median(S["omega"]))
-    return tuple(float(x) for x in period * np.array([0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0,
-                                                      2.0]))
-
-
-def flutter_library(S: dict) -> list[Effect]:
-    """Candidate effects for the aerofoil. S: arrays over the samples h, al, hd, ad, V,
-    omega (the orbit's angular frequency), and n (samples per orbit, orbit-major order)."""
-    al_max = float(np.max(np.abs(S["al"]))) or 1.0
-    fp_grid = tuple(float(x) for x in al_max * np.array([0.02, 0.05, 0.1, 0.15, 0.2, 0.3,
-                                                        0.4, 0.5]))
-    L = [
-        Effect("cubic heave stiffness", 0, ("h^3",), lambda S, _: S["h"][:, None] ** 3),
-        Effect("heave stiffness, 5th and 7th order", 0, ("h^5", "h^7"),
-               lambda S, _: np.stack([S["h"] ** 5, S["h"] ** 7], 1)),
-        Effect("quadratic heave stiffness", 0, ("h^2",), lambda S, _: S["h"][:, None] ** 2),
-        Effect("linear heave damping", 0, ("h'",), lambda S, _: S["hd"][:, None]),
-        Effect("cubic heave damping", 0, ("h'^3",), lambda S, _: S["hd"][:, None] ** 3),
-        Effect("quadratic heave damping", 0, ("|h'| h'",),
-               lambda S, _: (np.abs(S["hd"]) * S["hd"])[:, None]),
-        Effect("Coulomb friction in heave", 0, ("tanh(h'/1e-3 m/s)",),
-               lambda S, _: np.tanh(S["hd"] / HEAVE_FRICTION_VS)[:, None]),
-        Effect("linear heave stiffness", 0, ("h",), lambda S, _: S["h"][:, None]),
-        Effect("airspeed-dependent heave terms", 0, ("V h", "V^2 h", "V h'"),
-               lambda S, _: np.stack([S["V"] * S["h"], S["V"] ** 2 * S["h"],
-                                      S["V"] * S["hd"]], 1)),
-        Effect("aerodynamic lag state in heave (first-order lag of V h', V^2 alpha)", 0,
-               ("lag_tau(V h')", "lag_tau(V^2 alpha)"),
-               lambda S, t: np.stack([lag(S, S["V"] * S["hd"], t),
-                                      lag(S, S["V"] ** 2 * S["al"], t)], 1),
-               _tau_grid(S), "tau (s)"),
-        Effect("pitch coupling in heave", 0, ("alpha", "h alpha"),
-               lambda S, _: np.stack([S["al"], S["h"] * S["al"]], 1)),
-        Effect("pitch freeplay", 1, ("sat(alpha, delta)",),
-               lambda S, d: _sat(S["al"], d)[:, None], fp_grid, "delta (rad)"),
-        Effect("pitch stiffness, 5th and 7th order", 1, ("alpha^5", "alpha^7"),
-               lambda S, _: np.stack([S["al"] ** 5, S["al"] ** 7], 1)),
-        Effect("linear pitch damping", 1, ("alpha'",), lambda S, _: S["ad"][:, None]),
-        Effect("cubic pitch damping", 1, ("alpha'^3",), lambda S, _: S["ad"][:, None] ** 3),
-        Effect("quadratic pitch damping", 1, ("|alpha'| alpha'",),
-               lambda S, _: (np.abs(S["ad"]) * S["ad"])[:, None]),
-        Effect("Coulomb friction in pitch", 1, ("tanh(alpha'/1e-2 rad/s)",),
-               lambda S, _: np.tanh(S["ad"] / PITCH_FRICTION_VS)[:, None]),
-        Effect("linear pitch stiffness", 1, ("alpha",), lambda S, _: S["al"][:, None]),
-        Effect("airspeed-dependent pitch terms", 1, ("V alpha", "V^2 alpha", "V alpha'"),
-               lambda S, _: np.stack([S["V"] * S["al"], S["V"] ** 2 * S["al"],
-                                      S["V"] * S["ad"]], 1)),
-        Effect("aerodynamic lag state in pitch (first-order lag of V h', V^2 alpha)", 1,
-               ("lag_tau(V h')", "lag_tau(V^2 alpha)"),
-               lambda S, t: np.stack([lag(S, S["V"] * S["hd"], t),
-                                      lag(S, S["V"] ** 2 * S["al"], t)], 1),
-               _tau_grid(S), "tau (s)"),
-        Effect("heave coupling in pitch", 1, ("h", "h alpha"),
-               lambda S, _: np.stack([S["h"], S["h"] * S["al"]], 1)),
-    ]
-    return L
+LINEAR_KINDS = (AERO, LINEAR, FREQ)
 
 
 @dataclass
 class Selection:
     equation: int
-    effects: list = field(default_factory=list)   # dicts: name, terms, shape, coefficients...
+    effects: list = field(default_factory=list)   # dicts: key, name, terms, shape, coef...
     cv_path: list = field(default_factory=list)   # (effect added, cv mse, se)
     baseline_cv: float = 0.0
     significant: bool = False
+    residual_rms: float = 0.0                     # of the mechanistic fit
+    force_rms: float = 0.0                        # of the equation's whole force
 
 
 def _fold_ids(groups: np.ndarray, k: int, rng) -> np.ndarray:
@@ -129,51 +50,102 @@ def _fold_ids(groups: np.ndarray, k: int, rng) -> np.ndarray:
     return np.array([fold_of[g] for g in groups])
 
 
+def _lstsq(X, y):
+    return np.linalg.lstsq(X, y, rcond=None)[0]
+
+
 def _cv(X: np.ndarray, y: np.ndarray, folds: np.ndarray) -> tuple[float, float]:
     """Mean and standard error over folds of the held-out mean squared error."""
     errs = []
     for f in np.unique(folds):
         tr, te = folds != f, folds == f
-        if X.shape[1]:
-            c, *_ = np.linalg.lstsq(X[tr], y[tr], rcond=None)
-            r = y[te] - X[te] @ c
-        else:
-            r = y[te]
+        r = y[te] - X[te] @ _lstsq(X[tr], y[tr]) if X.shape[1] else y[te]
         errs.append(float(np.mean(r ** 2)))
     errs = np.asarray(errs)
     return float(errs.mean()), float(errs.std(ddof=1) / np.sqrt(len(errs)))
 
 
+def _normalised(X):
+    s = np.sqrt(np.mean(X ** 2, axis=0))
+    return X / np.where(s > 0, s, 1.0), np.where(s > 0, s, 1.0)
+
+
+def _signs_ok(X, y, n_base, keys, cols, by_key) -> bool:
+    """Every sign-constrained effect of the joint fit has its physical sign."""
+    c = _lstsq(X, y)[n_base:]
+    off = 0
+    for key in keys:
+        w = cols[key][0].shape[1]
+        sign = by_key[key[0]].sign
+        if sign and np.any(sign * c[off:off + w] < 0):
+            return False
+        off += w
+    return True
+
+
+def _refine_shape(best, e: Effect, S, cols, B, chosen, yn, fid):
+    """The grid's best shape parameter polished by a bounded 1-D search of the CV error
+    between its grid neighbours (the grid only brackets it)."""
+    (key, d), m, se = best
+    if not e.grid:
+        return best
+    grid = sorted(e.grid(S))
+    i = grid.index(d)
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
+    if hi <= lo:
+        return best
+    from scipy.optimize import minimize_scalar
+
+    def score(x):
+        X = np.concatenate([B] + [cols[c][0] for c in chosen]
+                           + [_normalised(columns(e, S, float(x)))[0]], 1)
+        return _cv(X, yn, fid)[0]
+    r = minimize_scalar(score, bounds=(lo, hi), method="bounded",
+                        options={"xatol": 1e-3 * d})
+    if r.fun >= m:
+        return best
+    x = float(r.x)
+    cols[(key, x)] = _normalised(columns(e, S, x))
+    X = np.concatenate([B] + [cols[c][0] for c in chosen] + [cols[(key, x)][0]], 1)
+    return ((key, x), *_cv(X, yn, fid))
+
+
 def select(effects: list[Effect], S: dict, y: np.ndarray, groups: np.ndarray, *,
-           equation: int, folds: int = 5, seed: int = 0, max_effects: int = 4,
-           bootstrap: int = 200) -> Selection:
-    """Forward stepwise selection of effects for one equation's residual ``y``."""
+           equation: int, base: np.ndarray | None = None, folds: int = 5, seed: int = 0,
+           max_effects: int = 4, bootstrap: int = 200) -> Selection:
+    """Forward stepwise selection of effects for one equation: ``y`` the equation's
+    right-hand side, ``base`` the mechanistic model's columns (always in; None: the
+    residual itself is regressed)."""
     rng = np.random.default_rng(seed)
     fid = _fold_ids(groups, min(folds, len(np.unique(groups))), rng)
     scale = float(np.sqrt(np.mean(y ** 2))) or 1.0
     yn = y / scale
+    B = np.zeros((len(y), 0)) if base is None else _normalised(
+        base[:, np.any(base != 0, axis=0)])[0]
     pool = [e for e in effects if e.equation == equation]
+    by_key = {e.key: e for e in pool}
     cols = {}
     for e in pool:
-        for d in e.shapes:
-            X = np.asarray(e.columns(S, d), float)
-            s = np.sqrt(np.mean(X ** 2, axis=0))
-            cols[(e.name, d)] = (X / np.where(s > 0, s, 1.0), s)
+        for d in (e.grid(S) if e.grid else (None,)):
+            cols[(e.key, d)] = _normalised(columns(e, S, d))
     chosen: list = []
-    base_cv, base_se = _cv(np.zeros((len(y), 0)), yn, fid)
+    base_cv, base_se = _cv(B, yn, fid)
     path = [(None, base_cv, base_se)]
     while len(chosen) < max_effects:
         best = None
         for e in pool:
-            if any(c[0] == e.name for c in chosen):
+            if any(c[0] == e.key for c in chosen):
                 continue
-            for d in e.shapes:
-                X = np.concatenate([cols[c][0] for c in chosen] + [cols[(e.name, d)][0]], 1)
+            for (k, d) in [c for c in cols if c[0] == e.key]:
+                X = np.concatenate([B] + [cols[c][0] for c in chosen] + [cols[(k, d)][0]], 1)
+                if not _signs_ok(X, yn, B.shape[1], chosen + [(k, d)], cols, by_key):
+                    continue            # a physically wrong sign: not this combination
                 m, se = _cv(X, yn, fid)
                 if best is None or m < best[1]:
-                    best = ((e.name, d), m, se)
+                    best = ((k, d), m, se)
         if best is None:
             break
+        best = _refine_shape(best, by_key[best[0][0]], S, cols, B, chosen, yn, fid)
         chosen.append(best[0])
         path.append(best)
     # one-standard-error rule over the path
@@ -181,45 +153,150 @@ def select(effects: list[Effect], S: dict, y: np.ndarray, groups: np.ndarray, *,
     thresh = path[i_best][1] + path[i_best][2]
     k = next(i for i, p in enumerate(path) if p[1] <= thresh)
     chosen = chosen[:k]
-    sel = Selection(equation=equation, cv_path=[(p[0][0] if p[0] else None, p[1] * scale ** 2,
-                                                 p[2] * scale ** 2) for p in path],
+    c0 = _lstsq(B, yn) if B.shape[1] else np.zeros(0)
+    ssr_base = float(np.sum((yn - B @ c0) ** 2))
+    sel = Selection(equation=equation,
+                    cv_path=[(p[0][0] if p[0] else None, p[1] * scale ** 2,
+                              p[2] * scale ** 2) for p in path],
                     baseline_cv=base_cv * scale ** 2,
-                    significant=bool(k > 0 and base_cv - path[k][1] > base_se))
+                    significant=bool(k > 0 and base_cv - path[k][1] > base_se),
+                    residual_rms=float(np.sqrt(ssr_base / len(y))) * scale, force_rms=scale)
     if not chosen:
         return sel
-    X = np.concatenate([cols[c][0] for c in chosen], 1)
-    widths = [cols[c][0].shape[1] for c in chosen]
-    colscale = np.concatenate([cols[c][1] for c in chosen])
-    c_all, *_ = np.linalg.lstsq(X, yn, rcond=None)
-    # bootstrap over orbits
+    blocks = [cols[c] for c in chosen]
+    X = np.concatenate([B] + [b[0] for b in blocks], 1)
+    widths = [b[0].shape[1] for b in blocks]
+    c_all = _lstsq(X, yn)
     ug = np.unique(groups)
+    members = {g: np.flatnonzero(groups == g) for g in ug}
     boots = []
     for _ in range(bootstrap):
-        pick = rng.choice(ug, size=ug.size, replace=True)
-        idx = np.concatenate([np.flatnonzero(groups == g) for g in pick])
-        cb, *_ = np.linalg.lstsq(X[idx], yn[idx], rcond=None)
-        boots.append(cb)
+        idx = np.concatenate([members[g] for g in rng.choice(ug, size=ug.size, replace=True)])
+        boots.append(_lstsq(X[idx], yn[idx]))
     boots = np.asarray(boots)
-    resid_full = float(np.sum((yn - X @ c_all) ** 2))
-    off = 0
-    by_name = {e.name: e for e in pool}
-    for (name, d), w in zip(chosen, widths):
+    ssr_prev, off = ssr_base, B.shape[1]
+    for step, ((key, d), (_, s), w) in enumerate(zip(chosen, blocks, widths), start=1):
         sl = slice(off, off + w)
         off += w
-        keep = np.ones(X.shape[1], bool)
-        keep[sl] = False
-        if keep.any():
-            c_red, *_ = np.linalg.lstsq(X[:, keep], yn, rcond=None)
-            resid_red = float(np.sum((yn - X[:, keep] @ c_red) ** 2))
-        else:
-            resid_red = float(np.sum(yn ** 2))
-        coef = c_all[sl] * scale / colscale[sl]
-        unc = boots[:, sl].std(axis=0) * scale / colscale[sl]
+        # sequential share: what adding this effect, in the order selected, removed from
+        # the residual (drop-one shares vanish when two selected effects are collinear)
+        Xk = X[:, :off]
+        ssr = float(np.sum((yn - Xk @ _lstsq(Xk, yn)) ** 2))
+        coef = c_all[sl] * scale / s
+        unc = boots[:, sl].std(axis=0) * scale / s
+        e = by_key[key]
         sel.effects.append({
-            "name": name, "equation": equation, "terms": list(by_name[name].terms),
-            "shape": d, "shape_name": by_name[name].shape_name,
+            "key": key, "name": e.name, "kind": e.kind, "equation": equation,
+            "terms": list(e.terms), "shape": d, "shape_name": e.shape_name,
             "coefficients": coef.tolist(), "uncertainty": unc.tolist(),
-            "share": (resid_red - resid_full) / float(np.sum(yn ** 2)),
+            "share": (ssr_prev - ssr) / ssr_base if ssr_base > 0 else 0.0,
+            "force_share": (ssr_prev - ssr) / float(np.sum(yn ** 2)),
+            # its own step lowered the CV error by more than the standard error of the
+            # model before it (coefficients of collinear effects can each be unsure while
+            # the effect as a whole is not)
+            "cv_gain": (path[step - 1][1] - path[step][1]) * scale ** 2,
+            "significant": bool(path[step - 1][1] - path[step][1] > path[step - 1][2]),
+            # at least one coefficient clear of zero by two bootstrap standard errors
+            "clear_of_zero": bool(np.any(np.abs(coef) > 2 * unc)),
         })
+        ssr_prev = ssr
     sel.effects.sort(key=lambda e: -e["share"])
     return sel
+
+
+@dataclass
+class Explanation:
+    system: str
+    selections: list              # one Selection per equation
+    ranked: list                  # every selected effect, largest force share first
+    residual: dict                # per equation: samples of the states and the residual
+    significant: bool             # any effect significant at all
+    summary: str
+
+    def top(self) -> dict | None:
+        return self.ranked[0] if self.ranked else None
+
+    def to_dict(self) -> dict:
+        return {"system": self.system, "significant": self.significant,
+                "summary": self.summary, "ranked": self.ranked,
+                "equations": [{"equation": s.equation, "significant": s.significant,
+                               "residual_rms": s.residual_rms, "force_rms": s.force_rms,
+                               "cv_path": [{"added": a, "cv_mse": m, "se": se}
+                                           for a, m, se in s.cv_path],
+                               "effects": s.effects} for s in self.selections]}
+
+
+EQUATIONS = {"flutter": ("heave force (N)", "pitch moment (N m)"),
+             "oscillator": ("force per unit mass (m/s^2)",)}
+
+
+def explain(data: TrainingData, system: str, *, added: tuple = (), seed: int = 0,
+            folds: int = 5, bootstrap: int = 200, max_effects: int = 4,
+            library=None, target: np.ndarray | None = None) -> Explanation:
+    """Explain what the least-squares mechanistic model leaves, equation by equation.
+    ``added``: (key, shape) effects already in the model (a refined model's residual is
+    explained; those effects are no longer candidates). ``target``: (N, n_eq) forces to
+    explain instead of the residual, e.g. a learnt UDE correction U on the samples (the
+    mechanistic columns stay in, so what U does by retuning them is not credited to an
+    effect)."""
+    A, b, _, _ = regression(data, system, effects=tuple(added))
+    if target is not None:
+        b = -np.asarray(target, float).reshape(b.shape)
+    ys = np.asarray(data.ys)
+    S = sample_states(system, ys, np.asarray(data.drive.param), np.asarray(data.drive.omega))
+    groups = np.repeat(np.arange(ys.shape[0]), ys.shape[1])
+    done = {k for k, _ in added}
+    lib = [e for e in (LIBRARY[system] if library is None else library) if e.key not in done]
+    sels, residual = [], {}
+    for eq in range(b.shape[1]):
+        # y = the generalised force the model must still supply on the right-hand side
+        # (regression's b is its negative), so a coefficient is the force per unit column
+        y = -b[:, eq]
+        sel = select(lib, S, y, groups, equation=eq, base=A[:, eq, :], folds=folds,
+                     seed=seed + eq, max_effects=max_effects, bootstrap=bootstrap)
+        sels.append(sel)
+        Ae = A[:, eq, np.any(A[:, eq, :] != 0, axis=0)]
+        residual[eq] = y - Ae @ _lstsq(Ae, y)
+    # missing physics first (structural nonlinearities, hidden states), then the linear
+    # and parameter-dependent mismatch (retuned parameters, unsteady aerodynamics): the
+    # latter is what the quasi-steady aerofoil is known to lack, reported as such
+    ranked = sorted((e for s in sels for e in s.effects if e["significant"]),
+                    key=lambda e: (e["kind"] in LINEAR_KINDS, -e["force_share"]))
+    significant = any(s.significant for s in sels) and bool(ranked)
+    return Explanation(system, sels, ranked, {"states": S, "residual": residual,
+                                              "groups": groups},
+                       significant, _summary(ranked, significant))
+
+
+def _summary(ranked: list, significant: bool) -> str:
+    if not significant:
+        return "no significant missing effect: no candidate beats the noise"
+    top = ranked[0]
+    if all(e["kind"] in LINEAR_KINDS for e in ranked):
+        return ("no significant nonlinear effect; the residual is linear and "
+                f"parameter-dependent ({top['kind']}: {top['name']})")
+    return f"top-ranked missing effect: {top['name']} ({top['kind']})"
+
+
+def choose_shape(data: TrainingData, system: str, key: str, *, added: tuple = (),
+                 seed: int = 0, folds: int = 5):
+    """The shape parameter of effect ``key`` (None if it has none) that the leave-orbits-
+    out CV error prefers, with the mechanistic columns and ``added`` effects in."""
+    from ._library import effect
+    e = effect(system, key)
+    if not e.grid:
+        return None
+    A, b, _, _ = regression(data, system, effects=tuple(added))
+    ys = np.asarray(data.ys)
+    S = sample_states(system, ys, np.asarray(data.drive.param), np.asarray(data.drive.omega))
+    groups = np.repeat(np.arange(ys.shape[0]), ys.shape[1])
+    fid = _fold_ids(groups, min(folds, ys.shape[0]), np.random.default_rng(seed))
+    Ae = A[:, e.equation, :]
+    B = _normalised(Ae[:, np.any(Ae != 0, axis=0)])[0]
+    y = -b[:, e.equation]
+    y = y / (np.sqrt(np.mean(y ** 2)) or 1.0)
+    cols = {(e.key, d): _normalised(columns(e, S, d)) for d in e.grid(S)}
+    scores = {c: _cv(np.concatenate([B, cols[c][0]], 1), y, fid) for c in cols}
+    c = min(scores, key=lambda c: scores[c][0])
+    (_, d), _, _ = _refine_shape((c, *scores[c]), e, S, cols, B, [], y, fid)
+    return d

@@ -24,7 +24,7 @@ import numpy as np
 from ._continuation import Branch, trace_flutter, trace_flutter_through, trace_forced
 from ._data import DataError, OrbitDataset
 from ._gp import fit_gp
-from ._identify import TrainingData, identify, residual_forces, training_data
+from ._identify import TrainingData, augment, identify, residual_forces, training_data
 from ._metrics import (branch_metrics, estimate_from_data, locations, model_orbit,
                        with_reference)
 from ._models import UDE, duffing7, flutter_qs
@@ -129,7 +129,9 @@ def _add_isolas(model, diagram, ranges, scales, ds, max_isolas: int = 6, near: f
         sol = model_orbit(model, diagram, o, scales=scales)
         if sol is not None and abs(sol["amplitude"] - o.amplitude) <= near * a_max:
             continue
-        y0 = np.concatenate([start["q"][i, 0], start["qdot"][i, 0]])
+        # hidden states (a refined model's lags) start at zero: Newton finds them, they
+        # enter linearly
+        y0 = np.concatenate([start["q"][i, 0], start["qdot"][i, 0], np.zeros(model.n_hidden)])
         def known(V, amp):
             return any(abs(a - amp) <= 5e-3 * a_max
                        for b in diagram.values() for a, _ in b.amplitudes_at(V))
@@ -229,12 +231,14 @@ def _train_start(mech_model, data: TrainingData, opts: FitOptions, k: int, key, 
 
 
 def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
-        progress=None) -> FitResult:
+        progress=None, mechanistic: UDE | None = None) -> FitResult:
     """Identify the mechanistic model, train ``opts.starts`` UDEs, keep the best adequate one.
 
     ``reference``: known Hopf/fold ({"hopf": V, "fold": V}, e.g. the truth) for the error
     figures; without it they are estimated from the data and marked as such.
-    ``progress(event=..., **fields)`` is called along the way.
+    ``progress(event=..., **fields)`` is called along the way. ``mechanistic``: a model
+    to put the correction on instead of identifying one (e.g. a refined model; its
+    hidden states, if any, start from their periodic solutions along the data).
     """
     if len(ds) == 0:
         raise DataError("the dataset is empty")
@@ -243,13 +247,15 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
     say = progress or (lambda **kw: None)
     t_start = time.perf_counter()
     data = training_data(ds, n=opts.samples)
-    scales = np.asarray(data.y_scale)
     ranges = diagram_ranges(ds)
     if reference:
         ref, ref_source = dict(reference), "given"
     else:
         ref, ref_source = estimate_from_data(ds), "estimated from the measured points"
 
+    if mechanistic is not None:
+        return _fit_on(mechanistic, ds, data, opts, ranges, ref, ref_source, say, t_start,
+                       verbose=progress is not None)
     say(event="stage", stage="mechanistic identification")
     mech, ident = identify(data, opts.system)
     mech_model = UDE(mech)
@@ -275,6 +281,20 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
         ident["parameters"] = {f: float(getattr(mech_model.mech, f))
                                for f in mech_model.mech.fitted}
         ident["periodic_loss"] = info["loss"]
+    return _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start, ident,
+                   verbose=progress is not None)
+
+
+def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
+            ident=None, verbose: bool = False) -> FitResult:
+    if ident is None:
+        from ._refined import parameters_of_refined
+        ident = {"method": "given", "parameters": parameters_of_refined(mech_model.mech)
+                 if hasattr(mech_model.mech, "added") else
+                 {f: float(getattr(mech_model.mech, f)) for f in mech_model.mech.fitted},
+                 "std_error": {}}
+    data = augment(data, mech_model.mech)
+    scales = np.asarray(data.y_scale)
     say(event="stage", stage="mechanistic diagram")
     mech_diag, mech_m = _evaluate(mech_model, ds, ranges, scales, ref, ref_source)
     say(event="model", which="mechanistic", metrics=mech_m)
@@ -288,7 +308,7 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
         try:
             model, info = _train_start(
                 mech_model, data, opts, k, keys[k],
-                (lambda **kw: say(event="train", start=k + 1, **kw)) if progress else None)
+                (lambda **kw: say(event="train", start=k + 1, **kw)) if verbose else None)
             rec["train_seconds"] = time.perf_counter() - t0
             diag, m = _evaluate(model, ds, ranges, scales, ref, ref_source)
             rec.update(status="ok", loss=info.get("final_loss"), info=info, metrics=m)

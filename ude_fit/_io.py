@@ -64,8 +64,11 @@ def _skeleton_correction(h: dict | None):
 
 def save_model(path, model: UDE, **meta) -> None:
     """Write ``model`` and JSON-able ``meta`` (options, scales, ranges, diagrams...) to ``path``."""
+    from ._refined import describe
+    mech = model.mech
     header = {"format": MAGIC, "format_version": FORMAT_VERSION, "version": _version(),
-              "system": model.system, "mechanistic": parameters_of(model.mech),
+              "system": model.system, "mechanistic": parameters_of(getattr(mech, "base", mech)),
+              "effects": describe(mech),
               "correction": _correction_header(model.correction), **meta}
     buf = io.BytesIO()
     eqx.tree_serialise_leaves(buf, model)
@@ -108,6 +111,12 @@ def load_model(path) -> tuple[UDE, dict]:
         mech = duffing7(**header["mechanistic"])
     else:
         raise DataError(f"{path}: unknown system {system!r} in the model file")
+    if header.get("effects"):
+        from ._refined import refined
+        try:
+            mech = refined(mech, header["effects"])
+        except (ValueError, KeyError, TypeError) as exc:
+            raise DataError(f"{path}: bad effect in the model file ({exc})") from None
     skeleton = UDE(mech, _skeleton_correction(header.get("correction")))
     try:
         model = eqx.tree_deserialise_leaves(io.BytesIO(rest), skeleton)

@@ -72,19 +72,24 @@ def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> dict:
             rec.update(model=sol["amplitude"], error=e, trajectory=tr, missed=False,
                        model_stable=sol["stable"])
         points.append(rec)
-    out = _summary(points)
+    out = _summary(points, a_max)
     out["points"] = points
     if ds.system == "oscillator":
         out["per_frequency"] = {
-            f"{f:g}": _summary([p for p in points if round(p["frequency"], 6) == f])
+            f"{f:g}": _summary([p for p in points if round(p["frequency"], 6) == f], a_max)
             for f in ds.frequencies_group()}
     return out
 
 
-def _summary(points: list) -> dict:
+def _summary(points: list, a_max: float) -> dict:
     errs = np.array([p["error"] for p in points if not p["missed"]])
     traj = np.array([p["trajectory"] for p in points if not p["missed"]])
+    # a missed point counted as if the model predicted rest there (error = the measured
+    # amplitude): one figure that a model cannot improve by dropping hard points
+    every = np.array([p["measured"] / a_max if p["missed"] else p["error"] for p in points])
     return {"branch_rms": float(np.sqrt(np.mean(errs ** 2))) if errs.size else None,
+            "branch_rms_with_missed": float(np.sqrt(np.mean(every ** 2))) if every.size
+            else None,
             "branch_max": float(errs.max()) if errs.size else None,
             "missed": int(sum(p["missed"] for p in points)),
             "trajectory_rms": float(np.sqrt(np.mean(traj ** 2))) if traj.size else None}

@@ -270,3 +270,46 @@ def plot_phase_portraits(path, ds, models: dict, diagrams: dict, *, scales, max_
     measured stability, as a PNG; returns ``path``."""
     _save(phase_figure(ds, models, diagrams, scales=scales, max_points=max_points), path)
     return path
+
+
+_STATE_LABELS = {"flutter": (("h", "heave h (mm)", MM), ("al", "pitch α (deg)", 180 / math.pi),
+                             ("hd", "heave rate h' (mm/s)", MM),
+                             ("ad", "pitch rate α' (deg/s)", 180 / math.pi)),
+                 "oscillator": (("x", "displacement x (mm)", MM),
+                                ("xd", "velocity x' (mm/s)", MM))}
+
+
+def residual_figure(explanation, *, parameter_label: str) -> Figure:
+    """What the mechanistic model leaves on every sample of the measured orbits, against
+    each state, one row per equation, coloured by the bifurcation parameter: the picture
+    that points at a missing effect (a cubic bend, a step at zero velocity, a flat zone)."""
+    from ._explain import EQUATIONS
+    system = explanation.system
+    S = explanation.residual["states"]
+    eqs = sorted(explanation.residual["residual"])
+    states = _STATE_LABELS[system]
+    fig = Figure(figsize=(3.2 * len(states), 2.8 * len(eqs) + 0.4), layout="constrained")
+    axes = fig.subplots(len(eqs), len(states), squeeze=False)
+    par = np.asarray(S["V"] if system == "flutter" else S["w"] / (2 * math.pi))
+    for i, eq in enumerate(eqs):
+        r = np.asarray(explanation.residual["residual"][eq])
+        sel = explanation.selections[i]
+        top = next((e["name"] for e in sel.effects if e["significant"]), "nothing significant")
+        for j, (key, label, k) in enumerate(states):
+            ax = axes[i, j]
+            sc = ax.scatter(np.asarray(S[key]) * k, r, c=par, s=4, cmap="viridis",
+                            rasterized=True)
+            ax.axhline(0.0, color="0.5", lw=0.6)
+            ax.set_xlabel(label)
+            if j == 0:
+                ax.set_ylabel(f"residual {EQUATIONS[system][eq]}")
+            ax.grid(alpha=0.3)
+        axes[i, 0].set_title(f"top candidate: {top}", loc="left", fontsize=9)
+    fig.colorbar(sc, ax=axes[:, -1].tolist(), label=parameter_label)
+    return fig
+
+
+def plot_residuals(path, explanation, *, parameter_label: str):
+    """Write :func:`residual_figure` as a PNG; returns ``path``."""
+    _save(residual_figure(explanation, parameter_label=parameter_label), path)
+    return path

@@ -170,34 +170,51 @@ def _periodic_loss(params, static, mech, data: TrainingData, sub: int, weights):
     return loss + weights[3] * _weight_penalty(params["corr"])
 
 
-def _mech_with(mech, fields, base, scale, delta):
-    vals = tuple(base[i] + scale[i] * delta[i] for i in range(len(fields)))
-    return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in fields), mech, vals)
+def _mech_leaves(mech):
+    """The fitted parameters of a mechanistic model as a tuple of arrays: the base
+    model's fitted fields, then each added effect's coefficient vector."""
+    base = getattr(mech, "base", mech)
+    out = tuple(getattr(base, f) for f in base.fitted)
+    if base is not mech:
+        out = out + tuple(a.coefficients for a in mech.added)
+    return out
 
 
-def _mech_periodic_loss(params, mech, fields, base, scale, data, sub, weights):
-    model = UDE(_mech_with(mech, fields, base, scale, params["delta"]))
+def _mech_with(mech, sizes, base, scale, delta):
+    flat = base + scale * delta
+    vals, i = [], 0
+    for shp in sizes:
+        k = int(np.prod(shp)) if shp else 1
+        vals.append(flat[i:i + k].reshape(shp))
+        i += k
+    return eqx.tree_at(_mech_leaves, mech, tuple(vals))
+
+
+def _mech_periodic_loss(params, mech, sizes, base, scale, data, sub, weights):
+    model = UDE(_mech_with(mech, sizes, base, scale, params["delta"]))
     return _periodic_objective(model, params, data, sub, weights)
 
 
 def refine_mechanistic(model: UDE, data: TrainingData, *, cfg: TrainConfig, progress=None):
     """Output-error identification of the mechanistic parameters: the equation-error
     estimate (or any start) refined so that the model has closed orbits through the
-    measured ones with the measured stability. Returns (UDE without correction, info)."""
+    measured ones with the measured stability. Returns (UDE without correction, info).
+    ``data`` must carry the model's hidden states, if it has any (``augment``)."""
     cfg = cfg.for_system(model.system)
     mech = model.mech
-    fields = tuple(mech.fitted)
-    base = jnp.asarray([float(getattr(mech, f)) for f in fields])
+    leaves = _mech_leaves(mech)
+    sizes = tuple(tuple(jnp.shape(x)) for x in leaves)
+    base = jnp.concatenate([jnp.ravel(jnp.asarray(x, float)) for x in leaves])
     scale = jnp.where(jnp.abs(base) > 0, jnp.abs(base), 1.0)
-    params = {"delta": jnp.zeros(len(fields)), "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
+    params = {"delta": jnp.zeros(base.size), "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
     if model.system == "flutter":
         params["dT"] = jnp.zeros(data.period.shape)
     weights = (cfg.closure_weight, cfg.stability_weight, cfg.stability_margin)
     params, v = minimize(_mech_periodic_loss, params,
-                         (mech, fields, base, scale, data, cfg.substeps, weights),
+                         (mech, sizes, base, scale, data, cfg.substeps, weights),
                          adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
                          lr=cfg.learning_rate, progress=progress, stage="mechanistic")
-    refined = _mech_with(mech, fields, base, scale, params["delta"])
+    refined = _mech_with(mech, sizes, base, scale, params["delta"])
     return UDE(refined), {"loss": v}
 
 

@@ -3,6 +3,9 @@
     ude-fit fit DATA... --system flutter|oscillator [--approximator nn|gp]
                 [--training trajectory|periodic] [--starts N] [--seed S] --out DIR
     ude-fit diagram MODEL [--data DATA...] [--retrace] [--out DIR]
+    ude-fit explain DATA... --system S [--model UDE.eqx] --out DIR
+    ude-fit refine DATA... --system S --add EFFECT[=SHAPE]... [--ude] --out DIR
+    ude-fit loop DATA... --system S [--max-effects N] [--min-gain G] [--ude] --out DIR
 
 User mistakes (a bad file, an empty dataset, a bad option) end with one line on stderr and
 exit status 2; a fit in which every start diverged ends with status 1 after writing what
@@ -111,6 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--retrace", action="store_true",
                    help="trace the branches again instead of using the stored ones")
     d.add_argument("--out", metavar="DIR", help="output folder (default: the model's folder)")
+
+    from ._cli_loop import add_parsers
+    add_parsers(sub, (_positive_int, _nonnegative_float))
     return p
 
 
@@ -152,6 +158,10 @@ class _Progress:
                 self._say(f"  {who} {kw['stage']} {kw['optimiser']} step "
                           f"{kw['step']}/{kw['steps']} loss {kw['loss']:.3e} "
                           f"({kw['elapsed']:.1f} s)")
+        elif event == "step":
+            r = kw["record"]
+            self._say(f"step {r['step']}: {r.get('name') or r.get('candidate')} "
+                      f"{'kept' if r['kept'] else 'not kept'} ({r['reason']})")
         elif event == "start_done":
             r = kw["record"]
             if r["status"] == "ok":
@@ -308,7 +318,11 @@ def main(argv=None) -> int:
     try:
         if args.command == "fit":
             return cmd_fit(args, argv)
-        return cmd_diagram(args, argv)
+        if args.command == "diagram":
+            return cmd_diagram(args, argv)
+        from . import _cli_loop
+        return {"explain": _cli_loop.cmd_explain, "refine": _cli_loop.cmd_refine,
+                "loop": _cli_loop.cmd_loop}[args.command](args, argv)
     except (UsageError, DataError) as exc:
         print(f"ude-fit: error: {exc}", file=sys.stderr)
         return _EXIT_USAGE

@@ -134,6 +134,59 @@ def _flutter_shoot(Y0, Ks, Ts, E, n, H):
     return out
 
 
+@njit
+def _flutter_shoot_plugin(Y0, Ks, Ts, E, n, H, force, scale):
+    """As :func:`_flutter_shoot`, with a compiled plugin force(t, q, qdot, None) -> (F_h,
+    M_alpha) added at every stage (times it by ``scale``; t = 0: the plugin must not
+    depend on time, the aerofoil being autonomous). Not cached: a compiled function is an
+    argument."""
+    m = Y0.shape[0]
+    out = np.empty_like(Y0)
+    y = np.empty(6)
+    tmp = np.empty(6)
+    ks = np.empty((4, 6))
+    for j in range(m):
+        K = Ks[j]
+        dt = Ts[j] / n
+        for i in range(6):
+            y[i] = Y0[j, i]
+        for s in range(n):
+            if j == 0:
+                for i in range(6):
+                    H[s, i] = y[i]
+            for st in range(4):
+                if st == 0:
+                    for i in range(6):
+                        tmp[i] = y[i]
+                else:
+                    c = dt if st == 3 else 0.5 * dt
+                    for i in range(6):
+                        tmp[i] = y[i] + c * ks[st - 1, i]
+                f = force(0.0, tmp[0:2].copy(), tmp[3:5].copy(), None)
+                flutter_deriv(tmp, ks[st], scale * f[0], scale * f[1], K, E)
+            for i in range(6):
+                y[i] += dt / 6.0 * (ks[0, i] + 2.0 * ks[1, i] + 2.0 * ks[2, i] + ks[3, i])
+        for i in range(6):
+            out[j, i] = y[i]
+    return out
+
+
+def compiled_plugin(func):
+    """The plugin compiled for the truth's integrators (numba), or ValueError saying why
+    it cannot be: the truth runs the plugin inside compiled code, so it must be plain
+    numerical Python that ignores its ``params`` argument."""
+    from numba import njit as _njit
+    f = _njit(func)
+    try:
+        out = np.asarray(f(0.0, np.zeros(2), np.zeros(2), None), dtype=float)
+    except Exception as exc:  # noqa: BLE001 - numba's typing errors are many kinds
+        raise ValueError(f"the plugin cannot be compiled for the truth analysis "
+                         f"({type(exc).__name__})") from None
+    if out.shape != (2,):
+        raise ValueError("the plugin must return (heave force, pitch moment)")
+    return f
+
+
 @njit(cache=True)
 def _oscillator_shoot(Y0, Phis, omega, K, E, mass, n, H):
     """Integrate m forced-oscillator trajectories over one forcing period 2 pi/omega.
@@ -207,11 +260,14 @@ class _FlutterProblem:
     dim_state = 6
     par_index = 7
 
-    def __init__(self, params: FlutterParams, E: np.ndarray, n_steps: int, su: np.ndarray):
+    def __init__(self, params: FlutterParams, E: np.ndarray, n_steps: int, su: np.ndarray,
+                 plugin=None, plugin_scale: float = 1.0):
         self.p = params
         self.E = E
         self.n = int(n_steps)
         self.su = su
+        self.plugin = plugin
+        self.plugin_scale = float(plugin_scale)
         self._kcache: dict[float, np.ndarray] = {}
 
     def _K(self, V: float) -> np.ndarray:
@@ -241,8 +297,13 @@ class _FlutterProblem:
                 U[2 + 2 * j, j] -= _FD_STEP * self.su[j]
         Ks = np.array([self._K(float(row[7])) for row in U])
         H = np.empty((self.n, 6))
-        Y1 = _flutter_shoot(np.ascontiguousarray(U[:, :6]), Ks,
-                            np.ascontiguousarray(U[:, 6]), self.E, self.n, H)
+        if self.plugin is None:
+            Y1 = _flutter_shoot(np.ascontiguousarray(U[:, :6]), Ks,
+                                np.ascontiguousarray(U[:, 6]), self.E, self.n, H)
+        else:
+            Y1 = _flutter_shoot_plugin(np.ascontiguousarray(U[:, :6]), Ks,
+                                       np.ascontiguousarray(U[:, 6]), self.E, self.n, H,
+                                       self.plugin, self.plugin_scale)
         r = self._residual(U[0, :6], Y1[0])
         J = None
         if jac:
@@ -548,7 +609,8 @@ def _flutter_orbit_record(problem: _FlutterProblem, pt: _Point) -> dict:
 def flutter_lco_branch(params: FlutterParams = FlutterParams(), effects=None, *,
                        V_min: float = 5.0, V_max: float = 26.0, amp_max: float = 0.5,
                        n_steps: int = 1000, ds_max: float = 0.08, max_points: int = 600,
-                       start_amp: float = 0.002) -> FlutterBranch:
+                       start_amp: float = 0.002, start_V: float | None = None,
+                       plugin=None) -> FlutterBranch:
     """Continue the aerofoil's limit cycles in airspeed from the Hopf point.
 
     The first orbit is found near the Hopf point from the critical eigenvector
@@ -560,8 +622,23 @@ def flutter_lco_branch(params: FlutterParams = FlutterParams(), effects=None, *,
     Scaled unknowns: states by the Hopf eigenvector normalised to 0.1 m heave,
     period by the Hopf period, V by 1 m/s; ``ds_max`` is the largest arclength
     step in those units.
+
+    Effects that change rest itself (pitch freeplay leaves the pitch spring slack at
+    rest; strong Coulomb friction locks it) leave no usable Hopf point. Give
+    ``start_V`` then: the branch starts from the effect-free rig's stable orbit at
+    that airspeed, the effects are switched on gradually at fixed airspeed (Newton at
+    each step), and the branch is continued from there towards lower and higher
+    airspeed (``hopf`` is then (nan, nan)). A user ``plugin`` force (the rig's
+    ``--effect-plugin`` callable, time-invariant and compilable, see
+    :func:`compiled_plugin`) is integrated with the rest; the Hopf point is that of the
+    rig without it, so a plugin that acts at rest to first order needs ``start_V``.
     """
     E = effect_vector("flutter", effects)
+    force = None if plugin is None else compiled_plugin(plugin)
+    if start_V is not None:
+        return _flutter_branch_from_clean(params, E, start_V, V_min=V_min, V_max=V_max,
+                                          amp_max=amp_max, n_steps=n_steps, ds_max=ds_max,
+                                          max_points=max_points, plugin=force)
     Vh, fh = flutter_hopf(params, E)
     if np.any(E):
         Jl = _flutter_numeric_jacobian(params, Vh, E)
@@ -573,7 +650,7 @@ def flutter_lco_branch(params: FlutterParams = FlutterParams(), effects=None, *,
     T0 = 1.0 / fh
     sy = np.maximum(np.abs(v) * 0.1, 1e-4)
     su = np.concatenate([sy, [T0, 1.0]])
-    problem = _FlutterProblem(params, E, n_steps, su)
+    problem = _FlutterProblem(params, E, n_steps, su, force)
 
     u0 = np.concatenate([start_amp * v.real, [T0, Vh]])
     us0 = u0 / su
@@ -616,6 +693,84 @@ def flutter_lco_branch(params: FlutterParams = FlutterParams(), effects=None, *,
         states=np.array([r["state"] for r in recs]), folds=folds, hopf=(Vh, fh),
         params=params, effects=E, n_steps=n_steps, scales=su, termination=tr.reason,
         _problem=problem)
+
+
+def _flutter_branch_from_clean(params, E, start_V, *, V_min, V_max, amp_max, n_steps,
+                               ds_max, max_points, plugin=None) -> FlutterBranch:
+    clean = flutter_lco_branch(params, None, V_min=V_min, V_max=max(V_max, start_V + 1.0),
+                               amp_max=amp_max, n_steps=n_steps, ds_max=ds_max,
+                               max_points=max_points)
+    orbs = [o for o in flutter_orbit_at(start_V, clean) if o["stable"]]
+    if not orbs:
+        raise RuntimeError(f"flutter_lco_branch: the effect-free rig has no stable orbit "
+                           f"at start_V = {start_V} m/s")
+    orb = max(orbs, key=lambda o: o["heave_amp"])
+    su = clean.scales.copy()
+    us = np.concatenate([orb["state"], [orb["period"], start_V]]) / su
+    a = np.zeros(8)
+    a[7] = 1.0
+    pt = None
+    for frac in np.linspace(0.1, 1.0, 10):          # switch the effects on gradually
+        problem = _FlutterProblem(params, frac * E, n_steps, su, plugin, frac)
+        pt = _newton(problem, us, a, us)
+        if pt is None:
+            raise RuntimeError(f"flutter_lco_branch: lost the orbit at {frac:.0%} of the "
+                               f"effects at V = {start_V} m/s")
+        us = pt.us
+
+    seen = [0]
+
+    def stop(us):
+        u = us * su
+        if u[7] < V_min:
+            return "V below V_min"
+        if u[7] > V_max:
+            return "V above V_max"
+        if abs(u[0]) > amp_max:
+            return "amplitude above amp_max"
+        seen[0] += 1
+        if seen[0] > 10 and np.linalg.norm(us - pt.us) < 0.5 * ds_max:
+            return "closed curve"           # back at the start: the branch is a loop
+        return ""
+
+    legs = []
+    for sign in (-1.0, 1.0):
+        t0 = np.zeros(8)
+        t0[7] = sign
+        seen[0] = 0
+        legs.append(_continue(problem, pt, t0, ds=0.02, ds_min=1e-7, ds_max=ds_max,
+                              max_points=max_points // 2, stop=stop))
+        if legs[-1].reason == "closed curve":
+            legs.append(_Trace([pt], [legs[-1].tangents[0]], [], "closed curve"))
+            break
+    down, up = legs
+    pts = down.points[::-1] + up.points[1:]
+    recs = [_flutter_orbit_record(problem, p) for p in pts]
+    folds = []
+    for leg, offset in ((down, None), (up, len(down.points) - 1)):
+        for k in leg.folds:
+            try:
+                fp = _locate_fold(problem, leg, k)
+            except (RuntimeError, ValueError):
+                fp = leg.points[k]          # a kink, not a smooth fold: the nearest orbit
+            rec = _flutter_orbit_record(problem, fp)
+            index = (len(down.points) - 2 - k) if offset is None else offset + k
+            folds.append(dict(V=rec["V"], heave_amp=rec["heave_amp"],
+                              pitch_amp=rec["pitch_amp"], period=rec["period"],
+                              floquet_max=rec["floquet_max"], index=index,
+                              state=rec["state"]))
+    folds.sort(key=lambda f: f["index"])
+
+    def col(name, dtype=float):
+        return np.array([r[name] for r in recs], dtype=dtype)
+
+    return FlutterBranch(
+        V=col("V"), period=col("period"), heave_amp=col("heave_amp"),
+        pitch_amp=col("pitch_amp"), heave_max=col("heave_max"), heave_dc=col("heave_dc"),
+        floquet_max=col("floquet_max"), stable=col("stable", bool),
+        states=np.array([r["state"] for r in recs]), folds=folds, hopf=(np.nan, np.nan),
+        params=params, effects=E, n_steps=n_steps, scales=su,
+        termination=f"{down.reason} / {up.reason}", _problem=problem)
 
 
 def _crossings(par: np.ndarray, value: float) -> list[int]:
