@@ -23,6 +23,7 @@ from tests.ude_fixtures import write_truth_campaign
 from ude_fit import cli
 
 SIGMA = 0.02
+HELD = 0.2       # a point the board could not hold on its orbit is not logged (as in CBC)
 K_ALPHA = FlutterParams().k_alpha      # the spring a freeplay gap takes out
 
 CASES = {
@@ -60,16 +61,16 @@ def loops(tmp_path_factory):
     for effect, (airspeeds, *_rest) in CASES.items():
         path = tmp / f"{effect}.h5"
         write_truth_campaign(path, "flutter", airspeeds=airspeeds, sigma=SIGMA,
-                             effects=(effect,))
+                             effects=(effect,), held_within=HELD)
         out[effect] = _loop(tmp, effect, [path])
     path = tmp / "clean.h5"
-    write_truth_campaign(path, "flutter", sigma=SIGMA)
+    write_truth_campaign(path, "flutter", sigma=SIGMA, held_within=HELD)
     out["clean"] = _loop(tmp, "clean", [path])
     plug = tmp / "gap_spring.py"
     plug.write_text(PLUGIN)
     path = tmp / "plugin.h5"
     write_truth_campaign(path, "flutter", airspeeds=(19.0, 20.0, 21.0, 22.0, 23.0, 24.0, 25.5),
-                         sigma=SIGMA, plugin=f"{plug}:force")
+                         sigma=SIGMA, plugin=f"{plug}:force", held_within=HELD)
     out["plugin"] = _loop(tmp, "plugin", [path])
     return out
 

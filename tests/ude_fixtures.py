@@ -302,7 +302,8 @@ def _point_doc(i: int, system: str, truth: dict, fourier: dict, timeseries: dict
 def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_freq=None,
                          sigma: float = 0.0, seed: int = 0, record_s=None,
                          keep_record: bool = True, effects: tuple = (),
-                         plugin: str | None = None) -> list[dict]:
+                         plugin: str | None = None, held_within: float | None = None
+                         ) -> list[dict]:
     """Write a campaign file of the rig's true periodic orbits; returns the truth records
     (one per point, in file order; see flutter_truth_orbits / oscillator_truth_orbits).
 
@@ -315,6 +316,10 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
     effects: ("name=value", ...) catalogue effects the rig (and its truth) is started with;
     the campaign file does not mention them (they are undeclared physics). plugin: the
     rig's --effect-plugin FILE.py:FUNC (flutter only; time-invariant, compilable by numba).
+    held_within: drop a point whose held response's first-harmonic amplitude is off the
+    truth orbit's by more than this fraction (noise knocked the board off an orbit it
+    could not hold: a CBC campaign would not log it as converged); returned records are
+    then those of the points written.
     """
     effects = tuple(effects)
     if system == "flutter":
@@ -327,7 +332,7 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
         raise ValueError(f"system {system!r}: flutter or oscillator")
     if record_s is None:
         record_s = DEFAULT_RECORD_S[system] if sigma > 0 else 0.0
-    docs = []
+    docs, kept = [], []
     for i, tr in enumerate(truths):
         if record_s > 0:
             ts, fourier, f_est = run_board_on_orbit(system, tr, sigma=sigma, seed=seed + i,
@@ -337,6 +342,9 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
             navg, host = 10, tr["parameter"]
             if not keep_record:
                 ts = {}
+            held = math.hypot(fourier["response"]["mean"][1], fourier["response"]["mean"][1 + NH])
+            if held_within is not None and abs(held / tr["amplitude"] - 1) > held_within:
+                continue
         else:
             ts, navg, host = {}, 1, 0.0
             resp = tr["coeffs"][0]
@@ -350,6 +358,7 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
             fourier = {ch: {"mean": np.asarray(v, float), "var": np.zeros(NCOEF)}
                        for ch, v in fourier.items()}
             freq = tr["frequency"]
-        docs.append(_point_doc(i, system, tr, fourier, ts, freq, navg, host))
+        docs.append(_point_doc(len(docs), system, tr, fourier, ts, freq, navg, host))
+        kept.append(tr)
     write_campaign(path, system, docs, seed=seed)
-    return truths
+    return kept

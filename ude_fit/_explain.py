@@ -36,7 +36,7 @@ LINEAR_KINDS = (AERO, LINEAR, FREQ)
 class Selection:
     equation: int
     effects: list = field(default_factory=list)   # dicts: key, name, terms, shape, coef...
-    cv_path: list = field(default_factory=list)   # (effect added, cv mse, se)
+    cv_path: list = field(default_factory=list)   # (effect added, cv mse, se, shape)
     baseline_cv: float = 0.0
     significant: bool = False
     residual_rms: float = 0.0                     # of the mechanistic fit
@@ -157,7 +157,7 @@ def select(effects: list[Effect], S: dict, y: np.ndarray, groups: np.ndarray, *,
     ssr_base = float(np.sum((yn - B @ c0) ** 2))
     sel = Selection(equation=equation,
                     cv_path=[(p[0][0] if p[0] else None, p[1] * scale ** 2,
-                              p[2] * scale ** 2) for p in path],
+                              p[2] * scale ** 2, p[0][1] if p[0] else None) for p in path],
                     baseline_cv=base_cv * scale ** 2,
                     significant=bool(k > 0 and base_cv - path[k][1] > base_se),
                     residual_rms=float(np.sqrt(ssr_base / len(y))) * scale, force_rms=scale)
@@ -216,13 +216,30 @@ class Explanation:
     def top(self) -> dict | None:
         return self.ranked[0] if self.ranked else None
 
+    def best_linear_term(self) -> dict | None:
+        """The linear, parameter-dependent candidate the forward paths took first (even
+        if not significant), from the equation the mechanistic model fits worst: what the
+        loop may still try on the diagram (a retuning, never a claim of missing physics)."""
+        from ._library import effect
+        best = None
+        for sel in self.selections:
+            for i, (key, _, _, shape) in enumerate(sel.cv_path[1:], start=1):
+                e = effect(self.system, key)
+                if e.kind in LINEAR_KINDS:
+                    rank = (i, -sel.residual_rms / sel.force_rms)
+                    if best is None or rank < best[0]:
+                        best = (rank, {"key": key, "name": e.name, "kind": e.kind,
+                                       "shape": shape, "equation": sel.equation})
+                    break
+        return None if best is None else best[1]
+
     def to_dict(self) -> dict:
         return {"system": self.system, "significant": self.significant,
                 "summary": self.summary, "ranked": self.ranked,
                 "equations": [{"equation": s.equation, "significant": s.significant,
                                "residual_rms": s.residual_rms, "force_rms": s.force_rms,
-                               "cv_path": [{"added": a, "cv_mse": m, "se": se}
-                                           for a, m, se in s.cv_path],
+                               "cv_path": [{"added": a, "cv_mse": m, "se": se, "shape": d}
+                                           for a, m, se, d in s.cv_path],
                                "effects": s.effects} for s in self.selections]}
 
 

@@ -200,20 +200,30 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
         say(event="stage", stage=f"explaining the residual (step {step})")
         ex = explain(data, system, added=tuple(added), seed=seed, bootstrap=bootstrap)
         explanations.append(ex)
-        top = ex.top()
+        top, why_tried = ex.top(), None
         if top is None or not ex.significant:
-            steps.append({"step": step, "candidate": None, "kept": False,
-                          "reason": ex.summary})
-            break
+            # nothing beats the noise: a linear term may still be worth a try on the
+            # diagram (kept only if it improves it); a structural effect never is
+            top = ex.best_linear_term()
+            if top is None:
+                steps.append({"step": step, "candidate": None, "kept": False,
+                              "reason": ex.summary})
+                break
+            why_tried = "not significant by cross-validation; a linear term tried on the diagram"
         trial = added + [(top["key"], top["shape"])]
         say(event="stage", stage=f"refitting with {top['name']}")
         mech, ident = _identify(data, system, trial, seed=seed, bootstrap=bootstrap)
         stage = _stage("refined", UDE(mech), ds, data, ranges, ref, ref_source, ident)
         keep = _better(stage.metrics, current.metrics, min_gain)
+        reason = ("improves the diagram" if keep else
+                  f"does not improve the diagram by {min_gain:.0%}")
+        if why_tried:
+            reason = f"{why_tried}; {reason}"
+        if "unphysical" in ident:
+            reason += f"; least-squares estimate unphysical ({ident['unphysical']})"
         steps.append({"step": step, "candidate": top["key"], "name": top["name"],
                       "kind": top["kind"], "shape": top["shape"], "kept": keep,
-                      "reason": ("improves the diagram" if keep else
-                                 f"does not improve the diagram by {min_gain:.0%}"),
+                      "significant": why_tried is None, "reason": reason,
                       "metrics": _brief(stage.metrics)})
         say(event="step", record=steps[-1])
         if not keep:
