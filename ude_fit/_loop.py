@@ -267,8 +267,9 @@ def metrics_document(result: LoopResult) -> dict:
         if ude_fit is not None:
             u = ude_fit.metrics.get("ude")
             m["ude"] = None if u is None else {
-                **{k: u.get(k) for k in ("branch_rms", "branch_max", "missed",
-                                         "trajectory_rms", "hopf", "fold")},
+                **{k: u.get(k) for k in ("branch_rms", "branch_rms_with_missed",
+                                         "branch_max", "missed", "trajectory_rms", "hopf",
+                                         "fold")},
                 "n_parameters": _n_parameters(ude_fit.ude) if ude_fit.ude else None,
                 "adequate_starts": ude_fit.metrics["starts"]["adequate"],
                 "starts": ude_fit.metrics["starts"]["requested"]}
