@@ -120,3 +120,35 @@ def test_jones_wake_states_solve_their_own_dynamics(states):
     # exact for the band the samples carry: compare where the downwash has no harmonics
     # beyond the Nyquist limit (it is K-harmonic here)
     assert np.allclose(d2W, rate[:, 1], atol=1e-6 * np.abs(rate[:, 1]).max())
+
+
+def test_a_learnt_correction_is_explained_like_a_residual(tmp_path):
+    """`explain(target=U)`: the forces a correction supplies on the samples are explained
+    with the mechanistic columns in; a correction that is a cubic heave spring is named so.
+    And `ude-fit explain --model` runs on a saved UDE and reports its correction."""
+    import jax
+    import json
+
+    from ude_fit import UDE, MLPCorrection, cli, flutter_qs, save_model
+    from ude_fit._explain import explain
+    from ude_fit._models import Scaling
+    path = tmp_path / "f.h5"
+    write_truth_campaign(path, "flutter", airspeeds=(18.0, 20.0, 22.0, 23.6))
+    data = training_data(load([path], "flutter"))
+    ys = np.asarray(data.ys)
+    S = sample_states("flutter", ys, np.asarray(data.drive.param), np.asarray(data.drive.omega))
+    U = np.stack([band(S, -4.0e5 * S["h"] ** 3), np.zeros(S["h"].size)], 1)
+    ex = explain(data, "flutter", target=U, seed=0)
+    assert ex.top()["key"] == "heave_cubic"
+    assert ex.top()["coefficients"][0] == pytest.approx(-4.0e5, rel=0.02)
+
+    sc = Scaling(np.zeros(5), np.ones(5), np.ones(2))
+    model = UDE(flutter_qs(), MLPCorrection(5, 2, sc, key=jax.random.PRNGKey(0)))
+    save_model(tmp_path / "u.eqx", model, role="ude")
+    out = tmp_path / "why"
+    assert cli.main(["explain", str(path), "--system", "flutter", "--model",
+                     str(tmp_path / "u.eqx"), "--out", str(out), "--quiet"]) == 0
+    doc = json.loads((out / "explanation.json").read_text())
+    assert doc["correction"]["model"].endswith("u.eqx")
+    assert len(doc["correction"]["equations"]) == 2
+    assert "learnt correction U" in (out / "report.md").read_text()
