@@ -32,7 +32,7 @@ from rig_sim.physics.flutter import FlutterParams  # noqa: E402
 from tests.ude_fixtures import write_truth_campaign  # noqa: E402
 from ude_fit import load, training_data  # noqa: E402
 from ude_fit._identify import regression  # noqa: E402
-from ude_fit._library import LIBRARY, STRUCTURAL, columns, sample_states  # noqa: E402
+from ude_fit._library import LIBRARY, STRUCTURAL, columns, states_of  # noqa: E402
 from ude_fit._loop import close_loop, metrics_document  # noqa: E402
 
 CASES = {
@@ -67,8 +67,7 @@ def stlsq(X, y, threshold=0.1, iters=10):
 def stlsq_peer(data) -> dict:
     """The peer's answer on the same residual: kept candidates per equation, ranked."""
     A, b, _, _ = regression(data, "flutter")
-    ys = np.asarray(data.ys)
-    S = sample_states("flutter", ys, np.asarray(data.drive.param), np.asarray(data.drive.omega))
+    S = states_of(data, "flutter")
     out = []
     for eq in range(b.shape[1]):
         base = A[:, eq, np.any(A[:, eq, :] != 0, axis=0)]

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._identify import TrainingData, regression
-from ._library import AERO, FREQ, LIBRARY, LINEAR, Effect, columns, sample_states
+from ._library import AERO, FREQ, LIBRARY, LINEAR, Effect, columns, states_of
 
 LINEAR_KINDS = (AERO, LINEAR, FREQ)
 
@@ -41,6 +41,12 @@ class Selection:
     significant: bool = False
     residual_rms: float = 0.0                     # of the mechanistic fit
     force_rms: float = 0.0                        # of the equation's whole force
+
+
+def _samples(data: TrainingData, system: str):
+    """The formulas' sample mapping and each sample's orbit index (orbit-major order)."""
+    n_o, n = data.ys.shape[:2]
+    return states_of(data, system), np.repeat(np.arange(n_o), n)
 
 
 def _fold_ids(groups: np.ndarray, k: int, rng) -> np.ndarray:
@@ -259,9 +265,7 @@ def explain(data: TrainingData, system: str, *, added: tuple = (), seed: int = 0
     A, b, _, _ = regression(data, system, effects=tuple(added))
     if target is not None:
         b = -np.asarray(target, float).reshape(b.shape)
-    ys = np.asarray(data.ys)
-    S = sample_states(system, ys, np.asarray(data.drive.param), np.asarray(data.drive.omega))
-    groups = np.repeat(np.arange(ys.shape[0]), ys.shape[1])
+    S, groups = _samples(data, system)
     done = {k for k, _ in added}
     lib = [e for e in (LIBRARY[system] if library is None else library) if e.key not in done]
     sels, residual = [], {}
@@ -304,10 +308,8 @@ def choose_shape(data: TrainingData, system: str, key: str, *, added: tuple = ()
     if not e.grid:
         return None
     A, b, _, _ = regression(data, system, effects=tuple(added))
-    ys = np.asarray(data.ys)
-    S = sample_states(system, ys, np.asarray(data.drive.param), np.asarray(data.drive.omega))
-    groups = np.repeat(np.arange(ys.shape[0]), ys.shape[1])
-    fid = _fold_ids(groups, min(folds, ys.shape[0]), np.random.default_rng(seed))
+    S, groups = _samples(data, system)
+    fid = _fold_ids(groups, min(folds, int(groups[-1]) + 1), np.random.default_rng(seed))
     Ae = A[:, e.equation, :]
     B = _normalised(Ae[:, np.any(Ae != 0, axis=0)])[0]
     y = -b[:, e.equation]

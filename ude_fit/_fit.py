@@ -230,6 +230,38 @@ def _train_start(mech_model, data: TrainingData, opts: FitOptions, k: int, key, 
         k_: v for k_, v in info.items() if isinstance(v, (int, float, str, bool))}}
 
 
+def prepare(ds: OrbitDataset, system: str, reference: dict | None, samples: int):
+    """Checks and the arrays every pipeline starts from: (training data, diagram ranges,
+    Hopf/fold reference, where the reference came from)."""
+    if len(ds) == 0:
+        raise DataError("the dataset is empty")
+    if ds.system != system:
+        raise DataError(f"the data is {ds.system} data, not {system}")
+    data = training_data(ds, n=samples)
+    if reference:
+        return data, diagram_ranges(ds), dict(reference), "given"
+    return (data, diagram_ranges(ds), estimate_from_data(ds),
+            "estimated from the measured points")
+
+
+def identify_mechanistic(data: TrainingData, system: str, *, bootstrap: int = 0,
+                         seed: int = 0):
+    """The least-squares mechanistic model, or the design values where that estimate is
+    unphysical (recorded in the returned info)."""
+    mech, ident = identify(data, system, bootstrap=bootstrap, seed=seed)
+    ident["method"] = "equation error (least squares)"
+    bad = _unphysical(mech)
+    if bad:
+        # equation error on noisy derivatives can land on negative damping or stiffness,
+        # which no passive structure has: the design values stand in (and it is recorded)
+        ident["equation_estimate_rejected"] = bad
+        ident["equation_parameters"] = ident["parameters"]
+        mech = nominal_mechanistic(system)
+        ident["method"] = "design values (the least-squares estimate was unphysical)"
+        ident["parameters"] = {f: float(getattr(mech, f)) for f in mech.fitted}
+    return mech, ident
+
+
 def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
         progress=None, mechanistic: UDE | None = None) -> FitResult:
     """Identify the mechanistic model, train ``opts.starts`` UDEs, keep the best adequate one.
@@ -240,36 +272,15 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
     to put the correction on instead of identifying one (e.g. a refined model; its
     hidden states, if any, start from their periodic solutions along the data).
     """
-    if len(ds) == 0:
-        raise DataError("the dataset is empty")
-    if ds.system != opts.system:
-        raise DataError(f"the data is {ds.system} data, not {opts.system}")
     say = progress or (lambda **kw: None)
     t_start = time.perf_counter()
-    data = training_data(ds, n=opts.samples)
-    ranges = diagram_ranges(ds)
-    if reference:
-        ref, ref_source = dict(reference), "given"
-    else:
-        ref, ref_source = estimate_from_data(ds), "estimated from the measured points"
-
+    data, ranges, ref, ref_source = prepare(ds, opts.system, reference, opts.samples)
     if mechanistic is not None:
         return _fit_on(mechanistic, ds, data, opts, ranges, ref, ref_source, say, t_start,
                        verbose=progress is not None)
     say(event="stage", stage="mechanistic identification")
-    mech, ident = identify(data, opts.system)
+    mech, ident = identify_mechanistic(data, opts.system)
     mech_model = UDE(mech)
-    ident["method"] = "equation error (least squares)"
-    bad = _unphysical(mech)
-    if bad:
-        # equation error on noisy derivatives can land on negative damping or stiffness,
-        # which no passive structure has: the design values stand in (and it is recorded)
-        ident["equation_estimate_rejected"] = bad
-        ident["equation_parameters"] = ident["parameters"]
-        mech_model = UDE(nominal_mechanistic(opts.system))
-        ident["method"] = "design values (the least-squares estimate was unphysical)"
-        ident["parameters"] = {f: float(getattr(mech_model.mech, f))
-                               for f in mech_model.mech.fitted}
     if opts.mechanistic == "periodic":
         say(event="stage", stage="mechanistic identification (periodic orbits)")
         start_params = ident["parameters"]

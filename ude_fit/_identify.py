@@ -96,7 +96,7 @@ def identify(data: TrainingData, system: str, base: dict | None = None,
     over that many refits to orbits resampled with replacement (the honest figure: the
     samples of one orbit are not independent).
     """
-    A, b, names, mech0 = regression(data, system, base, effects)
+    A, b, names, _ = regression(data, system, base, effects)
     # each equation weighted by its own force scale, each column by its own size
     w_eq = 1.0 / np.sqrt(np.mean(b ** 2, axis=0) + 1e-300)
     Aw = (A * w_eq[None, :, None]).reshape(-1, A.shape[-1])
@@ -182,9 +182,8 @@ def regression(data: TrainingData, system: str, base: dict | None = None,
     from ._library import band_limited
     A = band_limited(A.reshape(A.shape[0], -1), data.ys.shape[1]).reshape(A.shape)
     if effects:
-        from ._library import columns, effect, sample_states
-        S = sample_states(system, np.asarray(data.ys), np.asarray(data.drive.param),
-                          np.asarray(data.drive.omega))
+        from ._library import columns, effect, states_of
+        S = states_of(data, system)
         extra = []
         for key, shape in effects:
             e = effect(system, key)
@@ -203,11 +202,9 @@ def augment(data: TrainingData, mech) -> TrainingData:
     a model with hidden states can start, and be compared, on the data's orbits."""
     if not getattr(mech, "n_hidden", 0):
         return data
-    from ._library import sample_states
+    from ._library import states_of
     ys = np.asarray(data.ys)
-    S = sample_states(mech.system, ys, np.asarray(data.drive.param),
-                      np.asarray(data.drive.omega))
-    Z = mech.hidden_states(S).reshape(ys.shape[0], ys.shape[1], -1)
+    Z = mech.hidden_states(states_of(data, mech.system)).reshape(ys.shape[0], ys.shape[1], -1)
     ys2 = np.concatenate([ys, Z], axis=2)
     y_scale = np.sqrt(np.mean(ys2 ** 2, axis=(0, 1)))
     y_scale = np.where(y_scale > 0, y_scale, 1.0)

@@ -280,6 +280,13 @@ def effect(system: str, key: str) -> Effect:
                      f"(known: {', '.join(e.key for e in LIBRARY[system])})")
 
 
+def states_of(data, system: str) -> dict:
+    """The mapping S of the formulas on every sample of a TrainingData (``data.ys`` may
+    carry hidden states after (q, q'); they are ignored)."""
+    return sample_states(system, np.asarray(data.ys), np.asarray(data.drive.param),
+                         np.asarray(data.drive.omega))
+
+
 def sample_states(system: str, ys: np.ndarray, param: np.ndarray, omega: np.ndarray) -> dict:
     """The mapping S of the formulas from sampled orbits ys (n_orbits, n, >= n_state)."""
     n_o, n, _ = ys.shape

@@ -25,12 +25,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._data import DataError, OrbitDataset
+from ._data import OrbitDataset
 from ._explain import choose_shape, explain
-from ._fit import _evaluate, _unphysical, diagram_ranges, nominal_mechanistic
-from ._identify import augment, identify, training_data
+from ._fit import _evaluate, _unphysical, identify_mechanistic, prepare
+from ._identify import augment, identify
 from ._library import LIBRARY, effect
-from ._metrics import estimate_from_data
 from ._models import UDE
 from ._refined import describe
 
@@ -111,27 +110,10 @@ def _better(new: dict, old: dict, min_gain: float) -> bool:
 
 
 def _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap) -> Stage:
-    mech, ident = _identify(data, system, [], seed=seed, bootstrap=bootstrap)
-    if "unphysical" in ident:
-        # as `ude-fit fit` does: a least-squares estimate no passive structure has is
-        # replaced by the design values (recorded)
-        ident["equation_parameters"] = ident["parameters"]
-        mech = nominal_mechanistic(system)
-        ident["method"] = "design values (the least-squares estimate was unphysical)"
-        ident["parameters"] = {f: float(getattr(mech, f)) for f in mech.fitted}
+    # as `ude-fit fit` does: an unphysical least-squares estimate gives way to the design
+    # values (recorded)
+    mech, ident = identify_mechanistic(data, system, bootstrap=bootstrap, seed=seed)
     return _stage("mechanistic", UDE(mech), ds, data, ranges, ref, ref_source, ident)
-
-
-def _setup(ds: OrbitDataset, system: str, reference, samples: int):
-    if len(ds) == 0:
-        raise DataError("the dataset is empty")
-    if ds.system != system:
-        raise DataError(f"the data is {ds.system} data, not {system}")
-    data = training_data(ds, n=samples)
-    ranges = diagram_ranges(ds)
-    if reference:
-        return data, ranges, dict(reference), "given"
-    return data, ranges, estimate_from_data(ds), "estimated from the measured points"
 
 
 def parse_add(system: str, specs) -> list:
@@ -163,7 +145,7 @@ def refine(ds: OrbitDataset, system: str, add: list, *, reference=None, seed: in
     cross-validation) to the mechanistic model, refit, and compare diagrams."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
-    data, ranges, ref, ref_source = _setup(ds, system, reference, samples)
+    data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
     say(event="stage", stage="mechanistic model")
     before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap)
     added = []
@@ -192,7 +174,7 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     """explain -> add the top-ranked effect -> refit, while it improves the diagram."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
-    data, ranges, ref, ref_source = _setup(ds, system, reference, samples)
+    data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
     say(event="stage", stage="mechanistic model")
     before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap)
     current, added, steps, explanations = before, [], [], []
@@ -229,9 +211,7 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
         if not keep:
             break
         added, current = trial, stage
-    if not added:
-        # nothing kept: the "after" model is the mechanistic one
-        current = before
+    # nothing kept: "after" is the mechanistic model itself
     return LoopResult(system, before, current, added, steps=steps,
                       explanations=explanations, ranges=ranges,
                       seconds=time.perf_counter() - t0)
