@@ -206,18 +206,27 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
     """Generator: evaluate e on an ascending grid, refining each sign change on the
     way; returns True once the stable cycle has been found."""
     last = None
+    below = None                      # the grid point before `last`
     for A in grid:
         e, _ = yield from s.evaluate(A, quick=True)
         if e is None:
-            last = None
+            last = below = None
             continue
         if last is not None and last[1] * e < 0:
             # a quick evaluation can catch a transient: confirm the sign change at
             # steady state before spending a refinement on it
-            e_lo, _ = yield from s.evaluate(last[0])
+            lo, hi = last[0], A
+            e_lo, _ = yield from s.evaluate(lo)
             e, _ = yield from s.evaluate(A)
+            if e is not None and e_lo is not None and e_lo * e > 0 and below is not None:
+                # the quick value at `lo` was the transient (the response still catching
+                # up from below): at steady state the sign changes one step lower
+                e_below, _ = yield from s.evaluate(below[0])
+                if e_below is not None and e_below * e_lo < 0:
+                    lo, hi, e = below[0], lo, e_lo
+                    e_lo = e_below
             if e is not None and e_lo is not None and e_lo * e < 0:
-                r = yield from _refine(s, o, last[0], A)
+                r = yield from _refine(s, o, lo, hi)
                 if r is not None and r["converged"]:
                     roots.append(r)
                     msg = s.emit_root(r) if s.emit_root else None
@@ -227,9 +236,10 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
                         return True
                 elif r is not None:
                     yield Emit("note", {"text": f"V = {s.V}: no converged cycle in "
-                                                f"[{last[0]:.4f}, {A:.4f}] m (final error "
+                                                f"[{lo:.4f}, {hi:.4f}] m (final error "
                                                 f"{r['error']:.2e} m); not logged as a point"})
                 e, _ = yield from s.evaluate(A, quick=True)   # back above the root, go on
+        below = last
         last = (A, e) if e is not None else None
     return False
 
