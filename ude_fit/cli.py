@@ -6,6 +6,7 @@
     ude-fit explain DATA... --system S [--model UDE.eqx] --out DIR
     ude-fit refine DATA... --system S --add EFFECT[=SHAPE]... [--ude] --out DIR
     ude-fit loop DATA... --system S [--max-effects N] [--min-gain G] [--ude] --out DIR
+    ude-fit pipeline DATA... --system S [--starts N] --out DIR    (fit, loop, one summary)
 
 User mistakes (a bad file, an empty dataset, a bad option) end with one line on stderr and
 exit status 2; a fit in which every start diverged ends with status 1 after writing what
@@ -117,6 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     from ._cli_loop import add_parsers
     add_parsers(sub, (_positive_int, _nonnegative_float))
+    from ._cli_pipeline import add_parser as add_pipeline
+    add_pipeline(sub, (_positive_int, _finite_float))
     return p
 
 
@@ -320,9 +323,10 @@ def main(argv=None) -> int:
             return cmd_fit(args, argv)
         if args.command == "diagram":
             return cmd_diagram(args, argv)
-        from . import _cli_loop
+        from . import _cli_loop, _cli_pipeline
         return {"explain": _cli_loop.cmd_explain, "refine": _cli_loop.cmd_refine,
-                "loop": _cli_loop.cmd_loop}[args.command](args, argv)
+                "loop": _cli_loop.cmd_loop,
+                "pipeline": _cli_pipeline.cmd_pipeline}[args.command](args, argv)
     except (UsageError, DataError) as exc:
         print(f"ude-fit: error: {exc}", file=sys.stderr)
         return _EXIT_USAGE
