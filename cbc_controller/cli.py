@@ -35,6 +35,12 @@ def build_parser() -> argparse.ArgumentParser:
     clock.add_argument("--time-scale", type=float, metavar="K", help="embedded rig: K x real time")
     clock.add_argument("--lockstep", action="store_true", help="embedded rig: lockstep (fastest)")
     r.add_argument("--quiet", action="store_true", help="no progress on the terminal")
+    idn = sub.add_parser("identify", help="read a rig's device identification (exit 0 if it "
+                         "answers: a health check)")
+    idn.add_argument("rig", metavar="URL", help="tcp://HOST:PORT, serial://PORT or "
+                     "socket://HOST:PORT")
+    idn.add_argument("--timeout", type=float, default=2.0, metavar="S",
+                     help="seconds to wait for an answer (default 2)")
     v = sub.add_parser("validate", help="check a campaign file without touching a rig")
     v.add_argument("campaign")
     i = sub.add_parser("inspect", help="summarise a campaign file")
@@ -119,12 +125,13 @@ class Progress:
             el = time.time() - self.t0
             frac = len(self.tasks_done) / self.total
             eta = el / frac - el if frac > 0 else float("nan")
+            res = doc["extra"].get("final_error")     # the aerofoil's root residual
             self.stream.write(
                 f"\r[{self.points} points: {self.stable} stable, {self.unstable} unstable] "
                 f"{doc['key']}: A = {doc['amplitude'] * 1e3:.3f} mm, "
-                f"{'stable' if doc['stable'] else 'unstable'}, residual "
-                f"{doc['extra'].get('final_error', float('nan')):.1e} m | elapsed {el:.0f} s, "
-                f"ETA {eta:.0f} s   ")
+                f"{'stable' if doc['stable'] else 'unstable'}"
+                + (f", residual {res:.1e} m" if res is not None else "")
+                + f" | elapsed {el:.0f} s, ETA {eta:.0f} s   ")
             self.stream.flush()
         elif kind in ("fault", "link", "note"):
             self.stream.write(f"\n{kind}: {json.dumps(doc, default=str)}\n")
@@ -238,10 +245,33 @@ def _run(args) -> int:
             embedded.stop()
 
 
+def _identify(args) -> int:
+    import logging
+
+    from .client import RigClient, RigError
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)   # our one line says it all
+    if not args.timeout > 0:
+        return _fail(f"--timeout must be positive, not {args.timeout}")
+    try:
+        client = RigClient(args.rig, timeout=args.timeout, retries=0)
+    except ValueError as exc:
+        return _fail(str(exc))
+    try:
+        identity = client.connect()
+    except RigError as exc:
+        return _fail(f"the rig at {args.rig} does not answer ({exc})", 1)
+    finally:
+        client.close()
+    print(json.dumps(identity))
+    return 0
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "run":
         return _run(args)
+    if args.command == "identify":
+        return _identify(args)
     if args.command == "validate":
         from .campaign import CampaignError, load_campaign
         try:
