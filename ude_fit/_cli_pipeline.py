@@ -180,9 +180,10 @@ def render_pipeline(doc: dict, fitm: dict, loopm: dict) -> str:
              "![every model over the data](diagram.png)", "",
              "## Data", ""]
     d = doc["data"]
-    lines += [f"{d['points']} periodic orbits, parameter {d['parameter_range'][0]:g} to "
-              f"{d['parameter_range'][1]:g} "
-              f"{'m/s' if doc['system'] == 'flutter' else 'Hz'}, from "
+    what = ("airspeed", "m/s") if doc["system"] == "flutter" else \
+        ("forcing amplitude", "m/s²")
+    lines += [f"{d['points']} periodic orbits, {what[0]} {d['parameter_range'][0]:.4g} to "
+              f"{d['parameter_range'][1]:.4g} {what[1]}, from "
               + ", ".join(f"`{s}`" for s in d["sources"]) + ".", "",
               "## The models side by side", "",
               "| | mechanistic | UDE | refined (loop) |", "|---|---|---|---|"]
@@ -192,11 +193,16 @@ def render_pipeline(doc: dict, fitm: dict, loopm: dict) -> str:
             ("missed points", "missed", lambda x: _num(x, "{}")),
             ("one-period trajectory error, RMS", "trajectory_rms", pct),
             ("Hopf (error)", "hopf", _loc), ("fold (error)", "fold", _loc)]
+    if doc["system"] != "flutter":
+        rows = rows[:4]               # the forced oscillator has folds per frequency only
     for label, key, f in rows:
         lines.append(f"| {label} | {f(m.get(key))} | {f(u.get(key))} | {f(r.get(key))} |")
-    lines += ["", "Hopf and fold references: "
-              + (m.get("hopf") or {}).get("reference_source", "—") + ".", "",
-              "## What the mechanistic model was missing", ""]
+    source = (m.get("hopf") or {}).get("reference_source")
+    if source:
+        lines += ["", f"Hopf and fold references: {source}."]
+    lines += ["", "Points measured a hair from a fold are compared with the model's fold "
+              "when that is nearer than any orbit at their parameter (see `ude-fit fit`'s "
+              "error definitions).", "", "## What the mechanistic model was missing", ""]
     steps = loopm["steps"]
     if not steps:
         lines.append("The loop tried nothing: no candidate effect beat the noise.")

@@ -5,6 +5,13 @@
   amplitude), solved exactly, and |model amplitude - measured amplitude| divided by the
   largest measured amplitude. RMS and max over the points found; a point the model has no
   orbit for (no crossing with that stability) is *missed*.
+  Near a fold the amplitude at a fixed parameter is ill-conditioned: a campaign that
+  refines a fold measures points a hair from it, and a model whose fold sits 0.05 % short
+  would be compared on its other branch (or miss the point) although its diagram passes
+  through the point. So a model fold within ``FOLD_TOLERANCE`` of the parameter span of the
+  point, on a branch of the point's stability, is a candidate too (the point is compared
+  with the orbit at the fold, marked ``at_fold``), and the nearest candidate in amplitude
+  wins. Points on a branch the model has are unaffected.
 * Hopf and fold: the model's locations, and their errors against a reference (the truth
   where a test knows it, otherwise an estimate from the measured points, which says so).
 * Trajectory error: the model orbit and the measured one over one period, after the phase
@@ -50,11 +57,16 @@ def aligned_rms(model_coeffs, data_coeffs, scale) -> float:
     return float(np.sqrt(max(min(err(s), b), 0.0)))
 
 
+FOLD_TOLERANCE = 0.01      # of the measured parameter span: see the module docstring
+
+
 def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> dict:
     """Branch amplitude and trajectory errors of ``model`` (whose traced branches are
     ``diagram``: {"flutter": Branch} or {frequency_hz: Branch}) against the dataset."""
     amps = ds.amplitudes()
     a_max = float(amps.max())
+    params = [o.parameter for o in ds.orbits]
+    fold_tol = FOLD_TOLERANCE * (max(params) - min(params))
     n_pos = model.mech.n_dof
     pos_scale = np.array([max(np.hypot(o.coeffs[i][1], o.coeffs[i][K_HARMONICS + 1])
                               for o in ds.orbits) for i in range(n_pos)])
@@ -62,8 +74,9 @@ def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> dict:
     for o in ds.orbits:
         rec = {"parameter": o.parameter, "frequency": o.frequency, "measured": o.amplitude,
                "stable": o.stable}
-        sol = model_orbit(model, diagram, o, scales=scales)
-        if sol is None or (o.stable is not None and sol["stable"] != o.stable):
+        sol = model_orbit(model, diagram, o, scales=scales, fold_tolerance=fold_tol)
+        if sol is None or (o.stable is not None and not sol.get("at_fold")
+                           and sol["stable"] != o.stable):
             rec.update(model=None, error=None, trajectory=None, missed=True)
         else:
             e = abs(sol["amplitude"] - o.amplitude) / a_max
@@ -71,6 +84,8 @@ def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> dict:
             tr = aligned_rms(hc, np.asarray(o.coeffs)[:n_pos], pos_scale)
             rec.update(model=sol["amplitude"], error=e, trajectory=tr, missed=False,
                        model_stable=sol["stable"])
+            if sol.get("at_fold"):
+                rec.update(at_fold=True, model_parameter=sol["parameter"])
         points.append(rec)
     out = _summary(points, a_max)
     out["points"] = points
@@ -104,17 +119,49 @@ def branches_for(diagram: dict, o) -> list[Branch]:
             if abs(float(f) - o.frequency) <= 1e-6 * max(1.0, o.frequency)]
 
 
-def model_orbit(model, diagram: dict, o, *, scales) -> dict | None:
+def model_orbit(model, diagram: dict, o, *, scales,
+                fold_tolerance: float | None = None) -> dict | None:
     """The model's orbit matching measured orbit ``o``: same parameter, the measured
-    stability, nearest in amplitude over all branches (see _continuation.orbit_at)."""
+    stability, nearest in amplitude over all branches (see _continuation.orbit_at).
+    With ``fold_tolerance`` (parameter units), the orbits at the model's folds within that
+    distance of ``o``'s parameter, next to a part of the branch with ``o``'s stability,
+    compete too (returned with ``at_fold`` and the fold's ``parameter``)."""
     best = None
+
+    def better(sol):
+        return best is None or (abs(sol["amplitude"] - o.amplitude)
+                                < abs(best["amplitude"] - o.amplitude))
+
     for b in branches_for(diagram, o):
         sol = orbit_at(model, b, o.parameter, o.stable, scales=scales, near=o.amplitude)
         if sol is None or (o.stable is not None and sol["stable"] != o.stable):
             continue
-        if best is None or abs(sol["amplitude"] - o.amplitude) < abs(best["amplitude"]
-                                                                      - o.amplitude):
+        if better(sol):
             best = sol
+    if not fold_tolerance:
+        return best
+    for b in branches_for(diagram, o):
+        for f in b.folds:
+            if abs(f["param"] - o.parameter) > fold_tolerance:
+                continue
+            if best is not None and abs(f["amplitude"] - o.amplitude) >= abs(
+                    best["amplitude"] - o.amplitude):
+                continue
+            k = int(np.argmin(np.abs(b.param - f["param"]) + np.abs(b.amplitude
+                                                                    - f["amplitude"])))
+            sides = {bool(b.stable[j]) for j in (max(k - 1, 0), min(k + 1, len(b.param) - 1))}
+            if o.stable is not None and o.stable not in sides:
+                continue
+            # the fold itself lies between traced points (it is located beyond them):
+            # its amplitude is the located one, its orbit that of the nearest traced point
+            sol = orbit_at(model, b, float(b.param[k]), None, scales=scales,
+                           near=float(b.amplitude[k]))
+            if sol is None:
+                continue
+            sol = {**sol, "amplitude": float(f["amplitude"]), "at_fold": True,
+                   "parameter": float(f["param"])}
+            if better(sol):
+                best = sol
     return best
 
 
