@@ -209,7 +209,7 @@ def run_demo(args) -> int:
     record = {"version": __version__, "command": sys.argv, "settings": {
         k: v for k, v in _settings(args, camp_toml).items() if k != "campaign"},
         "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "runs": previous.get("runs", 0) + 1, "steps": {}}
+        "runs": previous.get("runs", 0) + 1, "steps": {}, "seconds": {}}
     (out / "demo.json").write_text(json.dumps(record, indent=2) + "\n")
     py = sys.executable
     state = _campaign_state(h5)
@@ -248,8 +248,10 @@ def run_demo(args) -> int:
                              "--rig", url, "--out", str(h5)]
             print(f"   {_shown(camp_args)}", file=sys.stderr, flush=True)
             record["steps"]["campaign"] = _shown(camp_args)
+            t = time.time()
             child = _Child(camp_args, stdout=subprocess.DEVNULL)
             code = child.wait()
+            record["seconds"]["campaign"] = round(time.time() - t, 1)
             child = None
             rig.stop()
             rig = None
@@ -268,8 +270,10 @@ def run_demo(args) -> int:
                     "--out", str(analysis)]
         print(f"   {_shown(fit_args)}", file=sys.stderr, flush=True)
         record["steps"]["fit"] = _shown(fit_args)
+        t = time.time()
         child = _Child(fit_args, stdout=subprocess.DEVNULL)
         code = child.wait()
+        record["seconds"]["fit"] = round(time.time() - t, 1)
         child = None
         if code != 0 or not (analysis / "metrics.json").exists():
             return _fail(f"the fit ended with status {code}; see {analysis}", 1)
@@ -289,6 +293,7 @@ def run_demo(args) -> int:
             if c is not None:
                 c.stop()
         record["ended"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        record["seconds"]["total"] = round(time.time() - t0, 1)
         (out / "demo.json").write_text(json.dumps(record, indent=2) + "\n")
 
     summary = write_summary(out, h5, analysis, time.time() - t0)
