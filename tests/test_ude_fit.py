@@ -130,6 +130,9 @@ def test_empty_folder_is_one_line_error(tmp_path):
     (["--starts", "0"], "--starts"),
     (["--system", "pendulum"], "--system"),
     (["--approximator", "svm"], "--approximator"),
+    (["--equilibrium-penalty", "-1"], "--equilibrium-penalty"),
+    (["--smoothness-penalty", "inf"], "--smoothness-penalty"),
+    (["--param-scale", "0"], "--param-scale"),
 ])
 def test_bad_options_name_the_option(flutter_fit, tmp_path, args, word):
     base = ["fit", str(flutter_fit["data"]), "--out", str(tmp_path / "o")]
@@ -151,6 +154,39 @@ def test_not_a_model_file(tmp_path):
     bad.write_bytes(b"\x00\x01garbage")
     r = _run("diagram", str(bad))
     assert r.returncode == 2 and "not a ude_fit model file" in r.stderr
+
+
+def test_regularity_penalties_vanish_for_no_correction_and_see_a_linear_one():
+    """The equilibrium penalty sees a correction's value and slope at y = 0, the smoothness
+    penalty its curvature in V and in amplitude: zero for a zero correction and for one
+    linear in the state (at fixed V); a V^2 or y^3 correction is seen."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    from ude_fit import UDE, flutter_qs
+    from ude_fit._models import Scaling
+    from ude_fit._train import Regularity, _equilibrium_penalty, _smoothness_penalty
+
+    class Poly(eqx.Module):
+        c: tuple = eqx.field(static=True)
+        scaling: Scaling
+
+        def __call__(self, z):
+            y, V = z[:4], z[4]
+            a, b, c = self.c
+            return jnp.stack([a * y[0] + b * V ** 2 * y[1] + c * y[1] ** 3, 0.0 * V])
+
+    sc = Scaling(jnp.zeros(5), jnp.ones(5), jnp.ones(2))
+    ys = jax.random.normal(jax.random.PRNGKey(0), (20, 4))
+    reg = Regularity(jnp.linspace(10.0, 30.0, 16), ys, jnp.ones(4), jnp.asarray(5.0),
+                     jnp.full(20, 20.0))
+    pen = lambda c: (float(_equilibrium_penalty(UDE(flutter_qs(), Poly(c, sc)), reg)),
+                     float(_smoothness_penalty(UDE(flutter_qs(), Poly(c, sc)), reg)))
+    assert pen((0.0, 0.0, 0.0)) == (0.0, 0.0)
+    lin, smooth = pen((1.0, 0.0, 0.0))
+    assert lin > 0 and smooth == pytest.approx(0.0, abs=1e-20)
+    assert pen((0.0, 1.0, 0.0))[1] > 0 and pen((0.0, 0.0, 1.0))[1] > 0
+    assert pen((0.0, 0.0, 1.0))[0] == pytest.approx(0.0, abs=1e-20)
 
 
 # ---- divergence: the start is dropped and reported -----------------------------------------

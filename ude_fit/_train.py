@@ -34,7 +34,7 @@ import optax
 
 from ._flow import diffrax_samples, rk4_orbit
 from ._identify import TrainingData, residual_forces
-from ._models import UDE, MLPCorrection, feature_scaling
+from ._models import UDE, Drive, MLPCorrection, feature_scaling
 
 
 class Diverged(RuntimeError):
@@ -58,6 +58,11 @@ class TrainConfig:
     stability_margin: float = 0.02
     init_scale: float = 1e-2
     weight_decay: float = 0.0    # periodic training: penalty on the mean square NN weight
+    # aerofoil only (see _equilibrium_penalty, _smoothness_penalty): penalties on the
+    # correction's value and slope at the equilibrium, and on its curvature in V and amplitude
+    linear_weight: float | None = None
+    smooth_weight: float | None = None
+    param_scale: float = 1.0     # the parameter input is standardised by this times its spread
 
     def for_system(self, system: str) -> "TrainConfig":
         """This configuration with every None field set to ``system``'s default."""
@@ -75,9 +80,10 @@ class TrainConfig:
 # makes its shooting losses 3x cheaper; its correction is cheap to fit to the equation
 # residual, and that first stage decides most of the final quality, so it gets more steps.
 SYSTEM_DEFAULTS = {
-    "flutter": dict(equation_steps=1500, adam_steps=300, lbfgs_steps=100, substeps=4),
+    "flutter": dict(equation_steps=1500, adam_steps=300, lbfgs_steps=100, substeps=4,
+                    linear_weight=0.0, smooth_weight=0.0),
     "oscillator": dict(equation_steps=4000, equation_lbfgs_steps=1000, adam_steps=300,
-                       lbfgs_steps=100, substeps=2),
+                       lbfgs_steps=100, substeps=2, linear_weight=0.0, smooth_weight=0.0),
 }
 
 
@@ -89,7 +95,10 @@ def _trainable_spec(correction):
 
 def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig) -> MLPCorrection:
     Z, R = residual_forces(model, data)
-    return MLPCorrection(Z.shape[1], R.shape[1], feature_scaling(Z, R), width=cfg.width,
+    sc = feature_scaling(Z, R)
+    if cfg.param_scale != 1.0:
+        sc = eqx.tree_at(lambda s: s.z_scale, sc, sc.z_scale.at[-1].multiply(cfg.param_scale))
+    return MLPCorrection(Z.shape[1], R.shape[1], sc, width=cfg.width,
                          depth=cfg.depth, key=key, init_scale=cfg.init_scale)
 
 
@@ -97,10 +106,92 @@ def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig) -> MLP
 # losses
 # ---------------------------------------------------------------------------------------
 
-def _equation_loss(params, static, mech, Z, R):
+def _equation_loss(params, static, mech, Z, R, reg=None, rw=(0.0, 0.0)):
     corr = eqx.combine(params["corr"], static)
     pred = jax.vmap(corr)(Z)
-    return jnp.mean(((pred - R) / corr.scaling.out_scale) ** 2)
+    loss = jnp.mean(((pred - R) / corr.scaling.out_scale) ** 2)
+    return loss + _regularity(UDE(mech, corr), reg, rw)
+
+
+# ---------------------------------------------------------------------------------------
+# regularity of the correction away from the measured orbits
+# ---------------------------------------------------------------------------------------
+
+class Regularity(eqx.Module):
+    """Where the correction is asked to stay regular (aerofoil): a grid of airspeeds over
+    the whole diagram range, the measured states, and the scales that make the penalties
+    dimensionless."""
+    V: jax.Array          # (m,) airspeeds from below the lowest to beyond the highest measured
+    ys: jax.Array         # (k, n_state) states sampled from the measured orbits
+    y_scale: jax.Array    # (n_state,)
+    v_span: jax.Array     # () the measured airspeeds' spread
+    ys_V: jax.Array       # (k,) the airspeed of each state in ys
+
+
+def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> Regularity:
+    """The penalty points for ``data``: airspeeds across the range the diagram is traced
+    over (see ``_fit.diagram_ranges``), states at ``per_orbit`` phases of every orbit."""
+    P = np.asarray(data.drive.param, float)
+    span = max(float(np.ptp(P)), 0.1 * float(P.max()))
+    V = np.linspace(max(0.5, P.min() - 1.5 * span), P.max() + 0.75 * span, n_v)
+    ys = np.asarray(data.ys)
+    step = max(1, ys.shape[1] // per_orbit)
+    return Regularity(jnp.asarray(V), jnp.asarray(ys[:, ::step].reshape(-1, ys.shape[-1])),
+                      jnp.asarray(data.y_scale), jnp.asarray(span),
+                      jnp.asarray(np.repeat(P, len(range(0, ys.shape[1], step)))))
+
+
+def _equilibrium_penalty(model: UDE, reg: Regularity):
+    """What the correction does to the equilibrium y = 0 and its linearisation, over the
+    airspeed range: mean square of U(0; V) and of dU/dy(0; V) y_scale, in units of the
+    correction's own force scale. The Hopf point is a property of that linearisation; the
+    measured orbits (finite amplitude) hardly constrain it, so without this a network is
+    free to move it."""
+    out = model.correction.scaling.out_scale
+    n = 2 * model.mech.n_dof
+    y0 = jnp.zeros(model.n_state)
+
+    def one(V):
+        d = Drive.of(V)
+        g = lambda y: model.correction_force(y, d) / out
+        u0, J = g(y0), jax.jacfwd(g)(y0)
+        return jnp.mean(u0 ** 2) + jnp.mean((J[:, :n] * reg.y_scale[:n]) ** 2)
+
+    return jnp.mean(jax.vmap(one)(reg.V))
+
+
+def _smoothness_penalty(model: UDE, reg: Regularity):
+    """Curvature of the correction along the airspeed and along the amplitude, in units of
+    its force scale: mean square second difference of U over the airspeed grid at the
+    measured states (as d2U/dV2 v_span^2), plus mean square third difference of U(s y; V)
+    over s in [0, 1] between the equilibrium and each measured state y (as d3U/ds3). A
+    correction that bends quickly with V makes the branch of orbits snake through the
+    measured points; one that bends quickly below the smallest measured orbit puts folds
+    and isolas between it and the Hopf point. Third differences leave U ~ s^2 free, which
+    with the equilibrium penalty (U(0) = dU/dy(0) = 0) is the smoothest way to reach the
+    measured correction."""
+    out = model.correction.scaling.out_scale
+    dV = reg.V[1] - reg.V[0]
+    U = jax.vmap(lambda V: jax.vmap(lambda y: model.correction_force(y, Drive.of(V)))(reg.ys))(
+        reg.V) / out                                   # (m, k, n_dof)
+    d2 = (U[2:] - 2 * U[1:-1] + U[:-2]) * (reg.v_span / dV) ** 2
+    s = jnp.linspace(0.0, 1.0, 6)
+    W = jax.vmap(lambda a: jax.vmap(lambda y, V: model.correction_force(a * y, Drive.of(V)))(
+        reg.ys, reg.ys_V))(s) / out                   # (6, k, n_dof)
+    d3 = (W[3:] - 3 * W[2:-1] + 3 * W[1:-2] - W[:-3]) / (s[1] - s[0]) ** 3
+    return jnp.mean(d2 ** 2) + jnp.mean(d3 ** 2)
+
+
+def _regularity(model: UDE, reg: Regularity | None, rw):
+    w_lin, w_smooth = rw
+    if reg is None:
+        return 0.0
+    out = 0.0
+    if w_lin:
+        out = out + w_lin * _equilibrium_penalty(model, reg)
+    if w_smooth:
+        out = out + w_smooth * _smoothness_penalty(model, reg)
+    return out
 
 
 def _simulate_with_monodromy(model, y0, T, drive, n, sub):
@@ -126,8 +217,13 @@ def _stability_indicator(system: str, M):
     return jnp.linalg.det(A)
 
 
-def _trajectory_loss(params, static, mech, data: TrainingData, sub: int):
+def _trajectory_loss(params, static, mech, data: TrainingData, sub: int, reg=None,
+                     rw=(0.0, 0.0)):
     model = UDE(mech, eqx.combine(params["corr"], static))
+    return _trajectory_error(model, data, sub) + _regularity(model, reg, rw)
+
+
+def _trajectory_error(model, data: TrainingData, sub: int):
     n = data.ys.shape[1]
 
     def one(ys, T, drive):
@@ -164,10 +260,11 @@ def _weight_penalty(corr_params):
     return sum(jnp.mean(m ** 2) for m in mats) / max(1, len(mats))
 
 
-def _periodic_loss(params, static, mech, data: TrainingData, sub: int, weights):
+def _periodic_loss(params, static, mech, data: TrainingData, sub: int, weights, reg=None):
     model = UDE(mech, eqx.combine(params["corr"], static))
     loss = _periodic_objective(model, params, data, sub, weights[:3])
-    return loss + weights[3] * _weight_penalty(params["corr"])
+    return (loss + weights[3] * _weight_penalty(params["corr"])
+            + _regularity(model, reg, weights[4:6]))
 
 
 def _mech_leaves(mech):
@@ -312,13 +409,17 @@ def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training
     info = {"training": training}
     Z, R = residual_forces(UDE(mech), data)
     params = {"corr": trainable}
-    params, v = minimize(_equation_loss, params, (static, mech, jnp.asarray(Z), jnp.asarray(R)),
+    rw = (cfg.linear_weight, cfg.smooth_weight)
+    reg = regularity_points(data) if model.system == "flutter" and any(rw) else None
+    params, v = minimize(_equation_loss, params,
+                         (static, mech, jnp.asarray(Z), jnp.asarray(R), reg, rw),
                          adam_steps=cfg.equation_steps, lbfgs_steps=cfg.equation_lbfgs_steps,
                          lr=1e-2,
                          progress=progress, stage="equation")
     info["equation_loss"] = v
     if training == "trajectory":
-        params, v = minimize(_trajectory_loss, params, (static, mech, data, cfg.substeps),
+        params, v = minimize(_trajectory_loss, params,
+                             (static, mech, data, cfg.substeps, reg, rw),
                              adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
                              lr=cfg.learning_rate, progress=progress, stage="trajectory")
     elif training == "periodic":
@@ -328,8 +429,9 @@ def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training
         if model.system == "flutter":
             params["dT"] = jnp.zeros(data.period.shape)
         weights = (cfg.closure_weight, cfg.stability_weight, cfg.stability_margin,
-                   cfg.weight_decay)
-        params, v = minimize(_periodic_loss, params, (static, mech, data, cfg.substeps, weights),
+                   cfg.weight_decay) + rw
+        params, v = minimize(_periodic_loss, params,
+                             (static, mech, data, cfg.substeps, weights, reg),
                              adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
                              lr=cfg.learning_rate, progress=progress, stage="periodic")
     elif training != "equation":

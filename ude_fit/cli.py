@@ -71,6 +71,17 @@ def _nonnegative_float(name):
     return conv
 
 
+def _positive_float(name):
+    finite = _finite_float(name)
+
+    def conv(s):
+        v = finite(s)
+        if v <= 0:
+            raise argparse.ArgumentTypeError(f"{name} must be positive, not {s!r}")
+        return v
+    return conv
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="ude-fit", description="Fit mechanistic and universal-differential-equation "
                 "models to logged limit cycles, trace their bifurcation diagrams, and report.")
@@ -101,6 +112,15 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--weight-decay", type=_nonnegative_float("--weight-decay"), default=0.0,
                    metavar="W", help="periodic training: penalty on the mean square network "
                    "weight, for smoother corrections on few noisy points (default 0)")
+    f.add_argument("--equilibrium-penalty", type=_nonnegative_float("--equilibrium-penalty"),
+                   metavar="W", help="aerofoil: penalty on the correction's value and slope at "
+                   "the equilibrium over the airspeed range, which holds the Hopf point (default 0)")
+    f.add_argument("--smoothness-penalty", type=_nonnegative_float("--smoothness-penalty"),
+                   metavar="W", help="aerofoil: penalty on the correction's curvature in "
+                   "airspeed and amplitude, against diagrams that snake (default 0)")
+    f.add_argument("--param-scale", type=_positive_float("--param-scale"), default=1.0,
+                   metavar="F", help="the network's parameter input is standardised by F times "
+                   "its spread in the data; larger F, slower variation with it (default 1)")
     f.add_argument("--reference-hopf", type=_finite_float("--reference-hopf"), metavar="V",
                    help="known Hopf airspeed (m/s) for the error figures")
     f.add_argument("--reference-fold", type=_finite_float("--reference-fold"), metavar="V",
@@ -228,11 +248,21 @@ def cmd_fit(args, argv) -> int:
                                    ("fold", args.reference_fold)) if v is not None}
     if reference and args.system != "flutter":
         raise UsageError("--reference-hopf/--reference-fold apply to --system flutter only")
+    if args.system != "flutter" and (args.equilibrium_penalty or args.smoothness_penalty):
+        raise UsageError("--equilibrium-penalty/--smoothness-penalty apply to --system "
+                         "flutter only")
+    if args.approximator != "nn" and (args.equilibrium_penalty or args.smoothness_penalty
+                                      or args.param_scale != 1.0):
+        raise UsageError("--equilibrium-penalty/--smoothness-penalty/--param-scale apply to "
+                         "--approximator nn only")
     opts = FitOptions(system=args.system, approximator=args.approximator,
                       training=args.training, starts=args.starts, seed=args.seed,
                       mechanistic=args.mechanistic,
                       train=TrainConfig(width=args.width, depth=args.depth,
-                                        weight_decay=args.weight_decay))
+                                        weight_decay=args.weight_decay,
+                                        linear_weight=args.equilibrium_penalty,
+                                        smooth_weight=args.smoothness_penalty,
+                                        param_scale=args.param_scale))
     progress = _Progress(args.quiet)
     progress._say(f"{len(ds)} orbits loaded ({args.system}); fitting")
     res = fit(ds, opts, reference=reference or None, progress=progress)
