@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 DOC = Path(__file__).resolve().parent / "cli.md"
+sys.path.insert(0, str(DOC.parents[1]))      # this checkout's packages, whatever is installed
 WIDTH = "100"          # argparse wraps to $COLUMNS: fixed, so the page is the same everywhere
 
 PROGRAMS = [

@@ -19,7 +19,7 @@ _KEYS = ("branch_rms", "branch_rms_with_missed", "branch_max", "missed", "trajec
 
 
 def add_parser(sub, types) -> None:
-    positive_int, finite_float = types
+    positive_int, finite_float, nonneg_float, positive_float = types
     p = sub.add_parser("pipeline", help="fit, then close the loop, then one summary report "
                        "(what the demo runs)")
     p.add_argument("data", nargs="+", metavar="DATA",
@@ -28,6 +28,12 @@ def add_parser(sub, types) -> None:
     p.add_argument("--starts", type=positive_int("--starts"), default=5,
                    help="UDE random starts (default 5)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--equilibrium-penalty", type=nonneg_float("--equilibrium-penalty"),
+                   metavar="W", help="aerofoil UDE: as `ude-fit fit --equilibrium-penalty`")
+    p.add_argument("--smoothness-penalty", type=nonneg_float("--smoothness-penalty"),
+                   metavar="W", help="aerofoil UDE: as `ude-fit fit --smoothness-penalty`")
+    p.add_argument("--param-scale", type=positive_float("--param-scale"), default=1.0,
+                   metavar="F", help="UDE: as `ude-fit fit --param-scale` (default 1)")
     p.add_argument("--max-effects", type=positive_int("--max-effects"), default=3,
                    help="most effects the loop adds (default 3)")
     p.add_argument("--reference-hopf", type=finite_float("--reference-hopf"), metavar="V",
@@ -68,11 +74,18 @@ def cmd_pipeline(args, argv) -> int:
     fit_args = argparse.Namespace(
         data=args.data, system=args.system, approximator="nn", training="periodic",
         mechanistic="equation", starts=args.starts, seed=args.seed, width=12, depth=2,
-        weight_decay=0.0, reference_hopf=args.reference_hopf,
+        weight_decay=0.0, equilibrium_penalty=args.equilibrium_penalty,
+        smoothness_penalty=args.smoothness_penalty, param_scale=args.param_scale,
+        reference_hopf=args.reference_hopf,
         reference_fold=args.reference_fold, out=os.path.join(out, "fit"), quiet=args.quiet)
+    extra = [f"--{k.replace('_', '-')}={getattr(args, k)}"
+             for k in ("equilibrium_penalty", "smoothness_penalty")
+             if getattr(args, k) is not None]
+    if args.param_scale != 1.0:
+        extra.append(f"--param-scale={args.param_scale}")
     fit_status = cmd_fit(fit_args, ["fit", *args.data, "--system", args.system,
                                     "--starts", str(args.starts), "--seed", str(args.seed),
-                                    "--out", fit_args.out])
+                                    *extra, "--out", fit_args.out])
     progress._say(f"pipeline 2/2: close the loop (explain, add, refit) -> "
                   f"{os.path.join(out, 'loop')}")
     loop_args = argparse.Namespace(

@@ -139,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     from ._cli_loop import add_parsers
     add_parsers(sub, (_positive_int, _nonnegative_float))
     from ._cli_pipeline import add_parser as add_pipeline
-    add_pipeline(sub, (_positive_int, _finite_float))
+    add_pipeline(sub, (_positive_int, _finite_float, _nonnegative_float, _positive_float))
     return p
 
 
