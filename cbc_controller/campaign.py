@@ -13,7 +13,7 @@ from pathlib import Path
 
 from rig_sim.device import register_map as M
 
-from .plans.autonomous import DEFAULTS as FLUTTER_DEFAULTS
+from .plans.autonomous import DEFAULTS as FLUTTER_DEFAULTS, ROOT_METHODS
 
 
 class CampaignError(ValueError):
@@ -30,6 +30,8 @@ _LOOP = {"rate_hz": float, "lockstep_slice_s": float, "reconnect_s": float, "wat
 # cbc keys that are rig settings: checked against the register map's ranges
 _CBC_REGISTER = {"kp": "kp", "kd": "kd", "navg": "navg", "clamp": "clamp", "trip": "trip",
                  "frequency_guess": "frequency"}
+
+_CBC_CHOICES = {"root_method": ROOT_METHODS}
 
 
 def _oscillator_defaults() -> dict:
@@ -145,7 +147,13 @@ def validate(raw: dict, name: str = "campaign") -> dict:
             raise CampaignError(f"{name}: cbc.{k}: unknown field for the {rig} plan "
                                 f"(known: {', '.join(sorted(defaults))})")
         d = defaults.get(k)
-        if isinstance(d, bool):
+        if isinstance(d, str):
+            _type(name, f"cbc.{k}", v, str)
+            choices = _CBC_CHOICES.get(k)
+            if choices and v not in choices:
+                raise CampaignError(f"{name}: cbc.{k} = {v!r}: must be one of "
+                                    + ", ".join(f'"{c}"' for c in choices))
+        elif isinstance(d, bool):
             _type(name, f"cbc.{k}", v, bool)
         elif isinstance(d, int):
             _type(name, f"cbc.{k}", v, int)

@@ -12,6 +12,16 @@ fundamental vanishes there). At each airspeed the plan
 as the wind-tunnel campaign did (Lee et al. 2020). The method is the "bracketing
 search on the target amplitude at fixed airspeed" of DESIGN.md.
 
+Under process noise (cbc.root_method = "regression") one estimate of e scatters by
+a few per cent of the amplitude however close the search is, so regula falsi
+would converge onto the noise. There every evaluation keeps the board's
+consecutive navg-period blocks as repeated measurements of e, a sign is trusted
+only when it stands out of their scatter, and a bracket is refined by probing on
+both sides of the current root and fitting a line through all the blocks near it
+(regression_root) until the root's standard error is small. The point's amplitude
+is then the regression's fixed point (A1 = A* where e = 0), which averages every
+block, rather than the last block alone.
+
 Stability of a root from the sign of de/dA1*: the control is proportional in the
 amplitude error, so where the open-loop amplitude would decay (inside the
 unstable cycle and outside the stable one) the controlled response falls short
@@ -28,6 +38,7 @@ import numpy as np
 
 from ..engine import amplitude
 from ..messages import Arm, Configure, Disarm, Emit, RigFault, RigRestarted, Settle
+from .regression_root import pooled_sd, root_from_blocks
 
 STABILITY_METHOD = "sign of de/dA* at the root (e = target amplitude - response amplitude)"
 
@@ -37,9 +48,12 @@ DEFAULTS = {
     "tolerance_abs": 2e-5, "tolerance_rel": 1e-3, "frequency_tolerance": 0.002,
     "dc_tolerance": 5e-5, "max_picard": 8, "max_refine": 16, "variance_rel": 5e-3,
     "max_gate_polls": 4, "record_s": 2.0, "clamp": 300.0, "trip": 0.2,
-    "picard_harmonics": False, "max_faults": 3, "noisy_fit": False,
-    "noise_tolerance": 0.0, "quench_periods": 6, "max_quench": 8,
+    "picard_harmonics": False, "max_faults": 3, "quench_periods": 6, "max_quench": 8,
+    # under process noise: "regression" (see the module's docstring)
+    "root_method": "regula_falsi", "blocks_per_eval": 3, "sign_z": 3.0,
+    "root_se_rel": 0.003, "root_se_accept": 0.02, "max_blocks": 48, "probe_rel": 0.025,
 }
+ROOT_METHODS = ("regula_falsi", "regression")
 
 
 def _targets(a0: float, a1: float) -> dict:
@@ -63,14 +77,20 @@ class _Search:
         self.roots_emitted: list[dict] = []
         self.emit_root = None
         self.evals: dict[float, tuple] = {}
+        self.blocks: dict[float, list] = {}   # regression: steady blocks of e per target
+        self.last_target = None
         self.t_wall = time.time()
 
-    def evaluate(self, A, quick: bool = False):
+    def evaluate(self, A, quick: bool = False, sign_only: bool = False):
         """Generator: Picard on DC and frequency at target amplitude A, then the
         variance gate. Returns (e, estimate) or (None, estimate) if no cycle formed.
         `quick` (scanning: only the sign of e matters) stops after one Picard round
-        unless e is within a few tolerances of zero."""
+        unless e is within a few tolerances of zero. `sign_only` (confirming a sign
+        change at steady state) stops once the amplitude's last move is too small
+        for the rest of its geometric relaxation to change the sign of e."""
         o = self.o
+        if o["root_method"] == "regression":
+            return (yield from self._evaluate_blocks(A, quick))
         est = None
         A1_prev = None
         tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
@@ -83,17 +103,12 @@ class _Search:
             resp = est.fourier["response"]["mean"]
             d_a0 = abs(resp[0] - self.a0)
             d_f = abs(est.frequency - self.f)
-            self.a0 = float(resp[0])
-            self.f = float(min(max(est.frequency, 0.2), 19.0))
-            if o["picard_harmonics"]:
-                # higher harmonics of the target follow the response's, so the control
-                # has none: only its fundamental (the root condition) remains
-                for k in list(range(2, 8)) + list(range(9, 15)):
-                    self.harmonics[k] = float(resp[k])
-            A1 = amplitude(resp)
+            A1 = self._picard(est)
             self.history.append(self._row(A, est, A - A1, it))
             if quick and abs(A - A1) > 0.1 * A:
                 break                     # far from a root: the sign of e is all we need
+            if sign_only and A1_prev is not None and abs(A - A1) > 4 * abs(A1 - A1_prev):
+                break
             # steady when the Picard variables have stopped moving AND the amplitude has
             # (the DC and the amplitude settle on the slow time scale of the closed loop)
             if (d_a0 < o["dc_tolerance"] and d_f < o["frequency_tolerance"]
@@ -111,6 +126,70 @@ class _Search:
         e = A - A1
         self.evals[A] = (e, est)
         return e, est
+
+    def _picard(self, est) -> float:
+        """One Picard step: the DC target and the phase-lock frequency (and, if asked,
+        the higher target harmonics) follow the response; returns its amplitude."""
+        resp = est.fourier["response"]["mean"]
+        self.a0 = float(resp[0])
+        self.f = float(min(max(est.frequency, 0.2), 19.0))
+        if self.o["picard_harmonics"]:
+            # higher harmonics of the target follow the response's, so the control
+            # has none: only its fundamental (the root condition) remains
+            for k in list(range(2, 8)) + list(range(9, 15)):
+                self.harmonics[k] = float(resp[k])
+        return amplitude(resp)
+
+    def _evaluate_blocks(self, A, quick: bool):
+        """Generator (root_method = "regression"): e at target A as the mean of
+        consecutive navg-period blocks, Picard running on between blocks. The first
+        block after a new target holds the closed loop's transient and only serves a
+        quick scan far from any root; the steady ones are kept for the regression.
+        A quick evaluation stops once the sign of e stands out of the blocks' scatter."""
+        o = self.o
+        # a move within a fraction of the probe step leaves no transient worth a block
+        if self.last_target is None or abs(A - self.last_target) > 0.3 * o["probe_rel"] * A:
+            yield Configure({**self.targets(A), "frequency": self.f})
+            est = yield Settle(periods=o["navg"] + o["transient_periods"])
+            self.last_target = A
+            if not math.isfinite(est.frequency) or est.frequency <= 0:
+                self.history.append(self._row(A, est, float("nan"), 0))
+                return None, est
+            e = A - self._picard(est)
+            self.history.append(self._row(A, est, e, 0))
+            if quick and abs(e) > 0.1 * A:
+                self.evals[A] = (e, est)
+                return e, est
+        self.last_target = A
+        vals = self.blocks.setdefault(A, [])
+        limit = o["blocks_per_eval"] * (2 if quick else 1)
+        for it in range(1, limit + 1):
+            yield Configure({**self.targets(A), "frequency": self.f})
+            est = yield Settle(periods=o["navg"])
+            if not math.isfinite(est.frequency) or est.frequency <= 0:
+                self.history.append(self._row(A, est, float("nan"), it))
+                return None, est
+            vals.append(A - self._picard(est))
+            self.history.append(self._row(A, est, vals[-1], it))
+            if quick and abs(np.mean(vals)) > o["sign_z"] * self.block_sd(est) / math.sqrt(len(vals)):
+                break
+        e = float(np.mean(vals))
+        self.evals[A] = (e, est)
+        return e, est
+
+    def samples(self) -> list:
+        """Every steady block so far at this airspeed, as (target, e)."""
+        return [(A, e) for A, vals in self.blocks.items() for e in vals]
+
+    def block_sd(self, est=None) -> float:
+        """Scatter of one block's e: pooled over the targets measured at this airspeed,
+        never below what the board's per-period variance implies for independent periods."""
+        floor = 0.0
+        if est is not None:
+            var = est.fourier["response"]["var"]
+            floor = math.sqrt((max(var[1], 0.0) + max(var[8], 0.0)) / self.o["navg"])
+        pooled = pooled_sd(self.blocks.values())
+        return max(pooled or 0.0, floor)
 
     def targets(self, A) -> dict:
         t = _targets(self.a0, A)
@@ -216,12 +295,12 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
             # a quick evaluation can catch a transient: confirm the sign change at
             # steady state before spending a refinement on it
             lo, hi = last[0], A
-            e_lo, _ = yield from s.evaluate(lo)
-            e, _ = yield from s.evaluate(A)
+            e_lo, _ = yield from s.evaluate(lo, sign_only=True)
+            e, _ = yield from s.evaluate(A, sign_only=True)
             if e is not None and e_lo is not None and e_lo * e > 0 and below is not None:
                 # the quick value at `lo` was the transient (the response still catching
                 # up from below): at steady state the sign changes one step lower
-                e_below, _ = yield from s.evaluate(below[0])
+                e_below, _ = yield from s.evaluate(below[0], sign_only=True)
                 if e_below is not None and e_below * e_lo < 0:
                     lo, hi, e = below[0], lo, e_lo
                     e_lo = e_below
@@ -256,6 +335,35 @@ def _quench(o: dict):
             break
 
 
+class _Bracket:
+    """A sign change of e, [lo, hi], narrowed by regula falsi with the Illinois
+    modification (an end kept twice in a row has its working value halved)."""
+
+    def __init__(self, lo, hi, elo, ehi):
+        self.lo, self.hi, self.elo, self.ehi = lo, hi, elo, ehi
+        self.flo, self.fhi = elo, ehi                # Illinois' working values
+        self.side = 0
+
+    def falsi(self) -> float:
+        return self.hi - self.fhi * (self.hi - self.lo) / (self.fhi - self.flo)
+
+    def secant(self) -> float:
+        """de/dA* across the bracket, from measured values, never the halved ones."""
+        return (self.ehi - self.elo) / (self.hi - self.lo)
+
+    def update(self, A, e) -> None:
+        if (e > 0) == (self.elo > 0):
+            self.lo, self.elo, self.flo = A, e, e
+            if self.side == -1:
+                self.fhi /= 2
+            self.side = -1
+        else:
+            self.hi, self.ehi, self.fhi = A, e, e
+            if self.side == 1:
+                self.flo /= 2
+            self.side = 1
+
+
 def _refine(s: _Search, o: dict, lo: float, hi: float):
     """Regula falsi (Illinois) on e(A*) inside [lo, hi], falling back to bisection
     whenever an iteration fails to halve the bracket; then the root's record."""
@@ -263,47 +371,45 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
     if elo * ehi >= 0:
         return None
     decreasing = elo > 0 > ehi
-    slope = (ehi - elo) / (hi - lo)               # from measured values, never the halved ones
-    if o["noisy_fit"]:
-        A, slope = yield from _fit_root(s, o, lo, hi, decreasing)
-        if A is None:
-            return None
-        return (yield from _record_root(s, o, A, slope, decreasing))
-    flo, fhi = elo, ehi                           # Illinois' working values
-    side, bisect = 0, False
+    if o["root_method"] == "regression":
+        return (yield from _refine_regression(s, o, lo, hi, elo, ehi, decreasing))
+    b = _Bracket(lo, hi, elo, ehi)
+    slope = b.secant()
+    bisect = False
     A = lo
     for _ in range(o["max_refine"]):
-        width = hi - lo
-        A = 0.5 * (lo + hi) if bisect else hi - fhi * (hi - lo) / (fhi - flo)
+        width = b.hi - b.lo
+        A = 0.5 * (b.lo + b.hi) if bisect else b.falsi()
         e, est = yield from s.evaluate(A)
         if e is None:
             return None
         tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
-        if (e > 0) == (elo > 0):
-            lo, elo, flo = A, e, e
-            if side == -1:
-                fhi /= 2
-            side = -1
-        else:
-            hi, ehi, fhi = A, e, e
-            if side == 1:
-                flo /= 2
-            side = 1
-        slope = (ehi - elo) / (hi - lo)
+        b.update(A, e)
+        slope = b.secant()
         # the root's location in A* is what matters: near the Hopf point e is shallow
         # (|de/dA*| << 1), so a small |e| alone can leave A* far from the root
         if abs(e) <= 0.2 * tol * abs(slope):
             break
-        if (hi - lo) <= 2 * tol:
-            A = hi - ehi * (hi - lo) / (ehi - elo)     # the root inside the final bracket
+        if (b.hi - b.lo) <= 2 * tol:
+            A = b.hi - b.ehi / slope                  # the root inside the final bracket
             break
-        bisect = (hi - lo) > 0.5 * width
+        bisect = (b.hi - b.lo) > 0.5 * width
     return (yield from _record_root(s, o, A, slope, decreasing))
 
 
-def _record_root(s: _Search, o: dict, A: float, slope: float, decreasing: bool = True):
+def _record_root(s: _Search, o: dict, A: float, slope: float, decreasing: bool = True,
+                 fit=None):
     """Converge fully at the root's target, then log the full-rate time series; if the
-    orbit drifted (an unstable cycle held by a marginal loop), again."""
+    orbit drifted (an unstable cycle held by a marginal loop), again. A regression
+    root is logged once at its target: its acceptance is the root's standard error."""
+    if fit is not None:
+        yield Configure({**s.targets(A), "frequency": s.f})
+        est = yield Settle(periods=o["navg"] + o["transient_periods"], record_s=o["record_s"])
+        return {"target": A, "error": A - amplitude(est.fourier["response"]["mean"]),
+                "estimate": est, "stable": not decreasing,
+                "converged": fit.se <= o["root_se_accept"] * A,
+                "amplitude": A, "regression": {"root_se": fit.se, "slope": fit.slope,
+                                               "blocks": fit.n, "block_sd": fit.residual_sd}}
     tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
     ok = False
     e, est = None, None
@@ -316,46 +422,56 @@ def _record_root(s: _Search, o: dict, A: float, slope: float, decreasing: bool =
         e = A - amplitude(est.fourier["response"]["mean"])
         # accepted only if the recorded orbit itself satisfies the root condition, to
         # within the tolerance on the root's location (|e| / |de/dA*|, local slope)
-        ok = abs(e) <= max(2 * tol, o["noise_tolerance"]) * max(abs(slope), 0.05)
+        ok = abs(e) <= 2 * tol * max(abs(slope), 0.05)
         if ok:
             break
     return {"target": A, "error": e, "estimate": est, "stable": not decreasing, "converged": ok}
 
 
-def _fit_root(s: _Search, o: dict, lo: float, hi: float, decreasing: bool):
-    """Experimental (cbc.noisy_fit, off by default; not yet better than regula falsi at
-    sigma = 0.02). With process noise single values of e are unreliable near the root: fit a line
-    through e on a grid across the bracket, then on a finer one around the fitted root
-    (the paper's surrogate, locally), and return the root and the slope."""
-    pts = []
-    for A in np.linspace(lo, hi, 5):
-        e, _ = yield from s.evaluate(float(A))
-        if e is not None:
-            pts.append((float(A), e))
-    root, slope = _line_root(pts, lo, hi)
-    if root is None:
-        return None, slope
-    w = 0.25 * (hi - lo)
-    for A in (root - 0.5 * w, root, root + 0.5 * w):
-        e, _ = yield from s.evaluate(float(A))
-        if e is not None:
-            pts.append((float(A), e))
-    near = [(a, e) for a, e in pts if abs(a - root) <= w]
-    root2, slope2 = _line_root(near if len(near) >= 3 else pts, lo, hi)
-    if root2 is None or (slope2 < 0) != decreasing:
-        return root, slope
-    return root2, slope2
+def _refine_regression(s: _Search, o: dict, lo: float, hi: float, elo: float, ehi: float,
+                       decreasing: bool):
+    """Root of e inside [lo, hi] under noise, in two phases.
 
-
-def _line_root(pts, lo, hi):
-    if len(pts) < 2:
-        return None, 0.0
-    a, e = np.array(pts).T
-    slope, icpt = np.polyfit(a, e, 1)
-    if slope == 0:
-        return None, 0.0
-    root = -icpt / slope
-    return (float(root), float(slope)) if lo <= root <= hi else (None, float(slope))
+    1. Bracketing (Illinois) on block means while their sign is certain: it stops
+       when the bracket is a few probe steps wide, or at a target whose mean e is
+       inside its own scatter (the root is within the noise of it).
+    2. Measure at the current root estimate, block after block; each block near it
+       gives a root A - e/slope (the slope from a line through the wider
+       neighbourhood, so its error enters only through the small offsets A - root);
+       stop when their mean's standard error is below root_se_rel of the amplitude
+       or the block budget is spent.
+    Then the record at the root."""
+    b = _Bracket(lo, hi, elo, ehi)
+    r = b.falsi()
+    while b.hi - b.lo > 4 * o["probe_rel"] * r:
+        e, est = yield from s.evaluate(r)
+        if e is None:
+            return None
+        if abs(e) <= o["sign_z"] * s.block_sd(est) / math.sqrt(len(s.blocks[r])):
+            break                                # within the noise of the root
+        b.update(r, e)
+        r = b.falsi()
+    lo, hi = b.lo, b.hi
+    slope = secant = b.secant()
+    used, fit = 0, None
+    while True:
+        fit = root_from_blocks(s.samples(), r, o["probe_rel"] * r, slope, s.block_sd(),
+                               min_slope=0.25 * abs(secant))
+        if fit is not None:
+            # the bracket's ends have a certain sign: the root is between them
+            slope, r = fit.slope, min(max(fit.root, lo), hi)
+            if fit.se <= o["root_se_rel"] * r and fit.n >= 2 * o["blocks_per_eval"]:
+                break
+        if used >= o["max_blocks"]:
+            break
+        n0 = len(s.samples())
+        e, _ = yield from s.evaluate(r)
+        if e is None:
+            return None
+        used += len(s.samples()) - n0
+    if fit is None or (fit.slope < 0) != decreasing:
+        return None
+    return (yield from _record_root(s, o, r, fit.slope, decreasing, fit=fit))
 
 
 def _point_doc(index, key, s: _Search, r: dict, o: dict) -> dict:
@@ -363,7 +479,14 @@ def _point_doc(index, key, s: _Search, r: dict, o: dict) -> dict:
     resp = est.fourier["response"]["mean"]
     ts = est.samples or {}
     extra = {"target_amplitude": r["target"], "final_error": r["error"],
-             "dc": float(resp[0]), "evaluations": len(s.history)}
+             "dc": float(resp[0]), "evaluations": len(s.history),
+             "root_method": o["root_method"]}
+    if "regression" in r:
+        # the amplitude logged is the regression's fixed point; the record's own too
+        reg = r["regression"]
+        extra.update({"root_se": reg["root_se"], "root_slope": reg["slope"],
+                      "root_blocks": reg["blocks"], "block_sd": reg["block_sd"],
+                      "record_amplitude": amplitude(resp)})
     if ts.get("x") is not None and len(ts["x"]):
         extra["control_rms"] = float(np.sqrt(np.mean(ts["control"] ** 2)))
         extra["response_rms"] = float(np.sqrt(np.mean((ts["x"] - resp[0]) ** 2)))
@@ -374,7 +497,7 @@ def _point_doc(index, key, s: _Search, r: dict, o: dict) -> dict:
     return {
         "index": index, "key": key, "rig": "flutter", "parameter": float(s.V),
         "parameter_name": "airspeed", "frequency": float(est.frequency),
-        "amplitude": amplitude(resp), "stable": bool(r["stable"]),
+        "amplitude": float(r.get("amplitude", amplitude(resp))), "stable": bool(r["stable"]),
         "stability_method": STABILITY_METHOD,
         "status": "ok" if r["converged"] else "not_converged",
         "settings": settings,
