@@ -43,7 +43,7 @@ from .regression_root import pooled_sd, root_from_blocks
 STABILITY_METHOD = "sign of de/dA* at the root (e = target amplitude - response amplitude)"
 
 DEFAULTS = {
-    "kp": 200.0, "kd": 60.0, "navg": 6, "transient_periods": 2, "frequency_guess": 2.4,
+    "kp": 200.0, "kd": 60.0, "navg": 4, "transient_periods": 1, "frequency_guess": 2.4,
     "amplitude_min": 0.006, "amplitude_max": 0.14, "amplitude_step": 0.012,
     "tolerance_abs": 2e-5, "tolerance_rel": 1e-3, "frequency_tolerance": 0.002,
     "dc_tolerance": 5e-5, "max_picard": 8, "max_refine": 16, "variance_rel": 5e-3,
@@ -105,8 +105,10 @@ class _Search:
             d_f = abs(est.frequency - self.f)
             A1 = self._picard(est)
             self.history.append(self._row(A, est, A - A1, it))
-            if quick and abs(A - A1) > 0.1 * A:
-                break                     # far from a root: the sign of e is all we need
+            # far from a root the sign of e is all a scan needs, but the first round
+            # after a step up can still be lagging (e > 0 however the orbit ends up)
+            if quick and abs(A - A1) > 0.1 * A and (it > 0 or A1 > A):
+                break
             if sign_only and A1_prev is not None and abs(A - A1) > 4 * abs(A1 - A1_prev):
                 break
             # steady when the Picard variables have stopped moving AND the amplitude has
@@ -269,10 +271,7 @@ def _search_airspeed(s: _Search, o: dict):
     cycle there).
     """
     yield Configure({"airspeed": s.V})
-    yield from _quench(o)
-    s.a0 = 0.0
-    yield Configure({"phase_mode": 1, **_targets(0.0, 0.0)})
-    yield Arm()
+    yield from _from_rest(s, o)
     step = o["amplitude_step"]
     grid = sorted(np.round(np.arange(o["amplitude_min"], o["amplitude_max"] + 1e-12, step), 6))
     roots: list = []
@@ -285,11 +284,11 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
     """Generator: evaluate e on an ascending grid, refining each sign change on the
     way; returns True once the stable cycle has been found."""
     last = None
-    below = None                      # the grid point before `last`
+    passed: list = []                 # grid points below `last` since the last root
     for A in grid:
         e, _ = yield from s.evaluate(A, quick=True)
         if e is None:
-            last = below = None
+            last, passed = None, []
             continue
         if last is not None and last[1] * e < 0:
             # a quick evaluation can catch a transient: confirm the sign change at
@@ -297,13 +296,11 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
             lo, hi = last[0], A
             e_lo, _ = yield from s.evaluate(lo, sign_only=True)
             e, _ = yield from s.evaluate(A, sign_only=True)
-            if e is not None and e_lo is not None and e_lo * e > 0 and below is not None:
-                # the quick value at `lo` was the transient (the response still catching
-                # up from below): at steady state the sign changes one step lower
-                e_below, _ = yield from s.evaluate(below[0], sign_only=True)
-                if e_below is not None and e_below * e_lo < 0:
-                    lo, hi, e = below[0], lo, e_lo
-                    e_lo = e_below
+            if e is not None and e_lo is not None and e_lo * e > 0 and passed:
+                # the quick value at `lo` was a transient (the response still catching
+                # up from below): at steady state the sign changes lower down
+                lo, hi, e_lo = yield from _look_lower(s, o, passed, lo, e_lo)
+                e = s.evals[hi][0]
             if e is not None and e_lo is not None and e_lo * e < 0:
                 r = yield from _refine(s, o, lo, hi)
                 if r is not None and r["converged"]:
@@ -317,10 +314,40 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
                     yield Emit("note", {"text": f"V = {s.V}: no converged cycle in "
                                                 f"[{lo:.4f}, {hi:.4f}] m (final error "
                                                 f"{r['error']:.2e} m); not logged as a point"})
-                e, _ = yield from s.evaluate(A, quick=True)   # back above the root, go on
-        below = last
+                passed = []
+                # back above the root, go on: at steady state, for a step up from the
+                # root can look like e > 0 for a while whatever the sign at A
+                e, _ = yield from s.evaluate(A, sign_only=True)
+        if last is not None:
+            passed.append(last[0])
         last = (A, e) if e is not None else None
     return False
+
+
+def _look_lower(s: _Search, o: dict, passed: list, hi: float, e_hi: float):
+    """Generator: walk down the grid points passed since the last root, each at
+    steady state, to the sign change the quick scan missed; returns the bracket
+    (lo, hi, e_lo), or (hi, hi, e_hi) if there is none. The rig is on a large orbit
+    by now, and a phase-locked target far inside it need not hold (the orbit must
+    encircle the target's centre), so each lower point is approached from rest."""
+    for A in reversed(passed):
+        yield from _from_rest(s, o)
+        e, _ = yield from s.evaluate(A, sign_only=True)
+        if e is None:
+            break
+        if e * e_hi < 0:
+            return A, hi, e
+        hi, e_hi = A, e
+    return hi, hi, e_hi
+
+
+def _from_rest(s: _Search, o: dict):
+    """Generator: quench the aerofoil, then hand it back to the phase-locked target
+    (zero for now) with the DC target reset."""
+    yield from _quench(o)
+    s.a0 = 0.0
+    yield Configure({"phase_mode": 1, **_targets(0.0, 0.0)})
+    yield Arm()
 
 
 def _quench(o: dict):
@@ -458,8 +485,11 @@ def _refine_regression(s: _Search, o: dict, lo: float, hi: float, elo: float, eh
         fit = root_from_blocks(s.samples(), r, o["probe_rel"] * r, slope, s.block_sd(),
                                min_slope=0.25 * abs(secant))
         if fit is not None:
-            # the bracket's ends have a certain sign: the root is between them
-            slope, r = fit.slope, min(max(fit.root, lo), hi)
+            # the bracket's ends had a sign outside the noise, the root is between
+            # them; a root close to an end may lie just beyond it (that end's sign was
+            # the noise's after all), so allow a couple of probe steps
+            d = 2 * o["probe_rel"] * fit.root
+            slope, r = fit.slope, min(max(fit.root, lo - d), hi + d)
             if fit.se <= o["root_se_rel"] * r and fit.n >= 2 * o["blocks_per_eval"]:
                 break
         if used >= o["max_blocks"]:
