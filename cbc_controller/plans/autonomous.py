@@ -78,21 +78,26 @@ class _Search:
         self.emit_root = None
         self.evals: dict[float, tuple] = {}
         self.blocks: dict[float, list] = {}   # regression: steady blocks of e per target
+        self.settled: set = set()             # targets whose sign of e is known at steady state
         self.last_target = None
         self.t_wall = time.time()
 
-    def evaluate(self, A, quick: bool = False, sign_only: bool = False):
+    def evaluate(self, A, quick: bool = False, sign_only: bool = False, coarse: bool = False):
         """Generator: Picard on DC and frequency at target amplitude A, then the
         variance gate. Returns (e, estimate) or (None, estimate) if no cycle formed.
         `quick` (scanning: only the sign of e matters) stops after one Picard round
         unless e is within a few tolerances of zero. `sign_only` (confirming a sign
         change at steady state) stops once the amplitude's last move is too small
-        for the rest of its geometric relaxation to change the sign of e."""
+        for the rest of its geometric relaxation to change the sign of e; a target
+        whose sign is settled that way, by any evaluation, is in `self.settled`.
+        `coarse` (a refinement step far from the root, which only places the next
+        step) stops once e is known to a few per cent."""
         o = self.o
         if o["root_method"] == "regression":
             return (yield from self._evaluate_blocks(A, quick))
         est = None
         A1_prev = None
+        self.settled.discard(A)
         tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
         for it in range(o["max_picard"]):
             yield Configure({**self.targets(A), "frequency": self.f})
@@ -109,12 +114,18 @@ class _Search:
             # after a step up can still be lagging (e > 0 however the orbit ends up)
             if quick and abs(A - A1) > 0.1 * A and (it > 0 or A1 > A):
                 break
-            if sign_only and A1_prev is not None and abs(A - A1) > 4 * abs(A1 - A1_prev):
+            moved = abs(A1 - A1_prev) if A1_prev is not None else math.inf
+            if abs(A - A1) > 4 * moved:
+                self.settled.add(A)
+                if sign_only:
+                    break
+            if coarse and abs(A - A1) > 10 * tol and moved < 0.05 * abs(A - A1):
                 break
             # steady when the Picard variables have stopped moving AND the amplitude has
             # (the DC and the amplitude settle on the slow time scale of the closed loop)
             if (d_a0 < o["dc_tolerance"] and d_f < o["frequency_tolerance"]
-                    and A1_prev is not None and abs(A1 - A1_prev) < 0.5 * tol):
+                    and moved < 0.5 * tol):
+                self.settled.add(A)
                 break
             A1_prev = A1
         for _ in range(o["max_gate_polls"]):          # variance gate on the fundamental
@@ -294,8 +305,9 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
             # a quick evaluation can catch a transient: confirm the sign change at
             # steady state before spending a refinement on it
             lo, hi = last[0], A
-            e_lo, _ = yield from s.evaluate(lo, sign_only=True)
-            e, _ = yield from s.evaluate(A, sign_only=True)
+            e_lo = s.evals[lo][0] if lo in s.settled else (yield from s.evaluate(lo, sign_only=True))[0]
+            if A not in s.settled:
+                e, _ = yield from s.evaluate(A, sign_only=True)
             if e is not None and e_lo is not None and e_lo * e > 0 and passed:
                 # the quick value at `lo` was a transient (the response still catching
                 # up from below): at steady state the sign changes lower down
@@ -407,7 +419,7 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
     for _ in range(o["max_refine"]):
         width = b.hi - b.lo
         A = 0.5 * (b.lo + b.hi) if bisect else b.falsi()
-        e, est = yield from s.evaluate(A)
+        e, est = yield from s.evaluate(A, coarse=True)
         if e is None:
             return None
         tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
