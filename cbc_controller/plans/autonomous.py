@@ -50,6 +50,9 @@ DEFAULTS = {
     "max_gate_polls": 4, "record_s": 2.0, "clamp": 300.0, "trip": 0.2,
     "picard_harmonics": False, "max_faults": 3, "quench_periods": 6, "max_quench": 8,
     # under process noise: "regression" (see the module's docstring)
+    # bracket each root around its prediction from the airspeeds before (+- warm_width
+    # of it) before falling back to the scan from a small amplitude
+    "warm_start": True, "warm_width": 0.08,
     "root_method": "regula_falsi", "blocks_per_eval": 3, "sign_z": 3.0,
     "root_se_rel": 0.003, "root_se_accept": 0.02, "max_blocks": 48, "probe_rel": 0.025,
 }
@@ -81,6 +84,7 @@ class _Search:
         self.settled: set = set()             # targets whose sign of e is known at steady state
         self.last_target = None
         self.t_wall = time.time()
+        self.found: list = []                 # (airspeed, stable, amplitude) found before
 
     def evaluate(self, A, quick: bool = False, sign_only: bool = False, coarse: bool = False):
         """Generator: Picard on DC and frequency at target amplitude A, then the
@@ -228,6 +232,9 @@ def flutter_plan(config: dict):
                          "clamp": o["clamp"], "trip": o["trip"], "airspeed": airspeeds[0],
                          "frequency": o["frequency_guess"], **_targets(0.0, 0.0)})
         counter = {"index": len(ctx.previous)}
+        # (airspeed, stable, amplitude) of every cycle found so far, for warm starts
+        found = [(p["parameter"], bool(p["stable"]), p["amplitude"]) for p in ctx.previous
+                 if p.get("status", "ok") == "ok" and p.get("parameter") is not None]
         faults_in_a_row = 0
         for V in airspeeds:
             keys = [k for k in ctx.done if k.startswith(f"V={V:.4f}/")]
@@ -235,6 +242,7 @@ def flutter_plan(config: dict):
                 continue                                 # this airspeed is in the file
             for attempt in range(3):
                 s = _Search(V, o)
+                s.found = found
                 s.emit_root = _root_emitter(ctx, counter, s, o)
                 try:
                     yield from _search_airspeed(s, o)      # emits each root as it is found
@@ -264,6 +272,7 @@ def _root_emitter(ctx, counter, s, o):
         k = sum(1 for x in s.roots_emitted if x["stable"] == r["stable"])
         s.roots_emitted.append(r)
         key = f"V={s.V:.4f}/{kind}{k}"
+        s.found.append((s.V, bool(r["stable"]), r.get("amplitude", r["target"])))
         if key in ctx.done:
             return None
         msg = Emit("point", _point_doc(counter["index"], key, s, r, o))
@@ -275,20 +284,75 @@ def _root_emitter(ctx, counter, s, o):
 def _search_airspeed(s: _Search, o: dict):
     """Generator: find, refine and emit the roots of e(A) at s.V; returns them.
 
-    The scan goes upward from a small target amplitude, from rest, and refines each
-    bracket as soon as it appears, so the target never jumps far below the orbit the
-    rig is on (a phase-locked target needs the orbit to encircle its centre). The
-    scan ends at the stable cycle (beyond it e only grows: the model has no further
-    cycle there).
+    With cycles of both kinds found at earlier airspeeds, each root is first
+    bracketed around its prediction (the unstable one from rest, then the stable
+    one above it). Otherwise, or if a prediction misses, the scan goes upward from a
+    small target amplitude, from rest, and refines each bracket as soon as it
+    appears, so the target never jumps far below the orbit the rig is on (a
+    phase-locked target needs the orbit to encircle its centre). The scan ends at
+    the stable cycle (beyond it e only grows: the model has no further cycle there).
     """
     yield Configure({"airspeed": s.V})
     yield from _from_rest(s, o)
+    roots: list = []
+    if o["warm_start"]:
+        for stable in (False, True):
+            guess = _predict(s.found, s.V, stable)
+            r = None if guess is None else (yield from _warm_root(s, o, guess, stable))
+            if r is None:
+                break
+            roots.append(r)
+            yield from _emit(s, r)
+        if len(roots) == 2:
+            yield Disarm()
+            return roots
+        yield from _from_rest(s, o)
     step = o["amplitude_step"]
     grid = sorted(np.round(np.arange(o["amplitude_min"], o["amplitude_max"] + 1e-12, step), 6))
-    roots: list = []
     yield from _scan(s, o, grid, roots)
     yield Disarm()
     return roots
+
+
+def _predict(found: list, V: float, stable: bool):
+    """The amplitude of the cycle of that kind at V, extrapolated linearly from the
+    two airspeeds measured last (or the last one alone); None if there is none."""
+    pts = [(v, a) for v, st, a in found if st == stable and v != V]
+    if not pts:
+        return None
+    (v1, a1) = pts[-1]
+    prev = [(v, a) for v, a in pts[:-1] if v != v1]
+    if not prev:
+        return a1
+    v0, a0 = prev[-1]
+    guess = a1 + (a1 - a0) * (V - v1) / (v1 - v0)
+    return min(max(guess, 0.5 * a1), 1.5 * a1)
+
+
+def _warm_root(s: _Search, o: dict, guess: float, stable: bool):
+    """Generator: bracket the root of that kind within +- warm_width of the guess
+    (at steady state: e > 0 > e above it for an unstable cycle, the reverse for a
+    stable one) and refine it; None if the bracket does not hold it."""
+    w = o["warm_width"]
+    lo = max(guess * (1 - w), o["amplitude_min"])
+    hi = min(guess * (1 + w), o["amplitude_max"])
+    e_lo, _ = yield from s.evaluate(lo, sign_only=True)
+    if e_lo is None or (e_lo < 0) != stable:
+        return None
+    e_hi, _ = yield from s.evaluate(hi, sign_only=True)
+    if e_hi is None or (e_hi > 0) != stable:
+        return None
+    r = yield from _refine(s, o, lo, hi)
+    if r is None or not r["converged"] or r["stable"] != stable:
+        return None
+    return r
+
+
+def _emit(s: _Search, r: dict):
+    """Generator: log a refined root now (a later fault cannot lose it)."""
+    msg = s.emit_root(r) if s.emit_root else None
+    if msg is not None:
+        yield msg
 
 
 def _scan(s: _Search, o: dict, grid: list, roots: list):
@@ -313,13 +377,15 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
                 # up from below): at steady state the sign changes lower down
                 lo, hi, e_lo = yield from _look_lower(s, o, passed, lo, e_lo)
                 e = s.evals[hi][0]
-            if e is not None and e_lo is not None and e_lo * e < 0:
+            known = [x for x in roots if lo <= x["target"] <= hi and x["stable"] == (e_lo < 0)]
+            if known and e is not None and e_lo is not None and e_lo * e < 0:
+                if known[0]["stable"]:
+                    return True                    # found by its warm start
+            elif e is not None and e_lo is not None and e_lo * e < 0:
                 r = yield from _refine(s, o, lo, hi)
                 if r is not None and r["converged"]:
                     roots.append(r)
-                    msg = s.emit_root(r) if s.emit_root else None
-                    if msg is not None:
-                        yield msg                  # logged now: a later fault cannot lose it
+                    yield from _emit(s, r)
                     if r["stable"]:
                         return True
                 elif r is not None:
@@ -376,15 +442,33 @@ def _quench(o: dict):
 
 class _Bracket:
     """A sign change of e, [lo, hi], narrowed by regula falsi with the Illinois
-    modification (an end kept twice in a row has its working value halved)."""
+    modification (an end kept twice in a row has its working value halved), or by
+    inverse quadratic interpolation where three measurements allow it."""
 
     def __init__(self, lo, hi, elo, ehi):
         self.lo, self.hi, self.elo, self.ehi = lo, hi, elo, ehi
         self.flo, self.fhi = elo, ehi                # Illinois' working values
         self.side = 0
+        self.third = None                            # the last point that left the bracket
 
     def falsi(self) -> float:
         return self.hi - self.fhi * (self.hi - self.lo) / (self.fhi - self.flo)
+
+    def next(self) -> float:
+        """The next target: e is strongly curved near an unstable cycle (steep above
+        it, flat below), where regula falsi creeps from one side; a quadratic through
+        the bracket's ends and the point before follows the curve."""
+        if self.third is not None:
+            pts = [(self.lo, self.elo), (self.hi, self.ehi), self.third]
+            fs = [f for _, f in pts]
+            if len(set(fs)) == 3:
+                x = 0.0
+                for i, (a, fa) in enumerate(pts):
+                    others = [f for j, (_, f) in enumerate(pts) if j != i]
+                    x += a * others[0] * others[1] / ((fa - others[0]) * (fa - others[1]))
+                if self.lo < x < self.hi:
+                    return x
+        return self.falsi()
 
     def secant(self) -> float:
         """de/dA* across the bracket, from measured values, never the halved ones."""
@@ -392,11 +476,13 @@ class _Bracket:
 
     def update(self, A, e) -> None:
         if (e > 0) == (self.elo > 0):
+            self.third = (self.lo, self.elo)
             self.lo, self.elo, self.flo = A, e, e
             if self.side == -1:
                 self.fhi /= 2
             self.side = -1
         else:
+            self.third = (self.hi, self.ehi)
             self.hi, self.ehi, self.fhi = A, e, e
             if self.side == 1:
                 self.flo /= 2
@@ -404,8 +490,9 @@ class _Bracket:
 
 
 def _refine(s: _Search, o: dict, lo: float, hi: float):
-    """Regula falsi (Illinois) on e(A*) inside [lo, hi], falling back to bisection
-    whenever an iteration fails to halve the bracket; then the root's record."""
+    """Inverse quadratic interpolation or regula falsi (Illinois) on e(A*) inside
+    [lo, hi], falling back to bisection when two steps in a row fail to halve the
+    bracket; then the root's record."""
     elo, ehi = s.evals[lo][0], s.evals[hi][0]
     if elo * ehi >= 0:
         return None
@@ -414,11 +501,13 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
         return (yield from _refine_regression(s, o, lo, hi, elo, ehi, decreasing))
     b = _Bracket(lo, hi, elo, ehi)
     slope = b.secant()
-    bisect = False
+    slow = 0                 # steps in a row that failed to halve the bracket
     A = lo
     for _ in range(o["max_refine"]):
         width = b.hi - b.lo
-        A = 0.5 * (b.lo + b.hi) if bisect else b.falsi()
+        # interpolation closes in from one side near the root: bisect only when it
+        # has stalled twice, not once
+        A = 0.5 * (b.lo + b.hi) if slow >= 2 else b.next()
         e, est = yield from s.evaluate(A, coarse=True)
         if e is None:
             return None
@@ -432,7 +521,7 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
         if (b.hi - b.lo) <= 2 * tol:
             A = b.hi - b.ehi / slope                  # the root inside the final bracket
             break
-        bisect = (b.hi - b.lo) > 0.5 * width
+        slow = 0 if slow >= 2 or (b.hi - b.lo) <= 0.5 * width else slow + 1
     return (yield from _record_root(s, o, A, slope, decreasing))
 
 
