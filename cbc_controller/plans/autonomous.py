@@ -369,7 +369,9 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
             # a quick evaluation can catch a transient: confirm the sign change at
             # steady state before spending a refinement on it
             lo, hi = last[0], A
-            e_lo = s.evals[lo][0] if lo in s.settled else (yield from s.evaluate(lo, sign_only=True))[0]
+            e_lo = s.evals[lo][0]
+            if lo not in s.settled:
+                e_lo, _ = yield from s.evaluate(lo, sign_only=True)
             if A not in s.settled:
                 e, _ = yield from s.evaluate(A, sign_only=True)
             if e is not None and e_lo is not None and e_lo * e > 0 and passed:
@@ -377,25 +379,26 @@ def _scan(s: _Search, o: dict, grid: list, roots: list):
                 # up from below): at steady state the sign changes lower down
                 lo, hi, e_lo = yield from _look_lower(s, o, passed, lo, e_lo)
                 e = s.evals[hi][0]
-            known = [x for x in roots if lo <= x["target"] <= hi and x["stable"] == (e_lo < 0)]
-            if known and e is not None and e_lo is not None and e_lo * e < 0:
-                if known[0]["stable"]:
-                    return True                    # found by its warm start
-            elif e is not None and e_lo is not None and e_lo * e < 0:
-                r = yield from _refine(s, o, lo, hi)
-                if r is not None and r["converged"]:
-                    roots.append(r)
-                    yield from _emit(s, r)
-                    if r["stable"]:
-                        return True
-                elif r is not None:
-                    yield Emit("note", {"text": f"V = {s.V}: no converged cycle in "
-                                                f"[{lo:.4f}, {hi:.4f}] m (final error "
-                                                f"{r['error']:.2e} m); not logged as a point"})
+            if e is not None and e_lo is not None and e_lo * e < 0:
+                stable = e_lo < 0
+                if any(lo <= x["target"] <= hi and x["stable"] == stable for x in roots):
+                    if stable:
+                        return True                # found by its warm start
+                else:
+                    r = yield from _refine(s, o, lo, hi)
+                    if r is not None and r["converged"]:
+                        roots.append(r)
+                        yield from _emit(s, r)
+                        if r["stable"]:
+                            return True
+                    elif r is not None:
+                        yield Emit("note", {"text": f"V = {s.V}: no converged cycle in "
+                                                    f"[{lo:.4f}, {hi:.4f}] m (final error "
+                                                    f"{r['error']:.2e} m); not logged as a point"})
+                    # back above the root, go on: at steady state, for a step up from
+                    # the root can look like e > 0 for a while whatever the sign at A
+                    e, _ = yield from s.evaluate(A, sign_only=True)
                 passed = []
-                # back above the root, go on: at steady state, for a step up from the
-                # root can look like e > 0 for a while whatever the sign at A
-                e, _ = yield from s.evaluate(A, sign_only=True)
         if last is not None:
             passed.append(last[0])
         last = (A, e) if e is not None else None
