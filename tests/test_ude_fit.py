@@ -189,6 +189,23 @@ def test_regularity_penalties_vanish_for_no_correction_and_see_a_linear_one():
     assert pen((0.0, 0.0, 1.0))[0] == pytest.approx(0.0, abs=1e-20)
 
 
+def test_static_divergence_is_no_hopf_point():
+    """A correction that softens the heave spring with airspeed (to zero stiffness at
+    18.3 m/s) makes a real eigenvalue cross first (static divergence): the trace says so
+    instead of dividing by a zero Hopf frequency."""
+    import equinox as eqx
+    import jax.numpy as jnp
+    from ude_fit import UDE, flutter_qs, trace_flutter
+
+    class Softening(eqx.Module):
+        def __call__(self, z):
+            return jnp.stack([1000.0 * (z[4] - 15.0) * z[0], 0.0 * z[4]])
+
+    b = trace_flutter(UDE(flutter_qs(), Softening()), v_range=(15.0, 23.0), amp_max=0.1,
+                      scales=np.array([0.05, 0.1, 0.5, 1.0]))
+    assert b.hopf is None and b.param.size == 0 and "static divergence" in b.reason
+
+
 # ---- divergence: the start is dropped and reported -----------------------------------------
 
 def test_nan_loss_raises_diverged():
