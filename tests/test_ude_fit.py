@@ -133,6 +133,9 @@ def test_empty_folder_is_one_line_error(tmp_path):
     (["--equilibrium-penalty", "-1"], "--equilibrium-penalty"),
     (["--smoothness-penalty", "inf"], "--smoothness-penalty"),
     (["--param-scale", "0"], "--param-scale"),
+    (["--param-dependence", "cubic"], "--param-dependence"),
+    (["--param-degree", "0"], "--param-degree"),
+    (["--approximator", "gp", "--param-dependence", "polynomial"], "--param-dependence"),
 ])
 def test_bad_options_name_the_option(flutter_fit, tmp_path, args, word):
     base = ["fit", str(flutter_fit["data"]), "--out", str(tmp_path / "o")]
@@ -179,7 +182,7 @@ def test_regularity_penalties_vanish_for_no_correction_and_see_a_linear_one():
     sc = Scaling(jnp.zeros(5), jnp.ones(5), jnp.ones(2))
     ys = jax.random.normal(jax.random.PRNGKey(0), (20, 4))
     reg = Regularity(jnp.linspace(10.0, 30.0, 16), ys, jnp.ones(4), jnp.asarray(5.0),
-                     jnp.full(20, 20.0))
+                     jnp.full(20, 20.0), jnp.ones(16), jnp.asarray(15.0))
     pen = lambda c: (float(_equilibrium_penalty(UDE(flutter_qs(), Poly(c, sc)), reg)),
                      float(_smoothness_penalty(UDE(flutter_qs(), Poly(c, sc)), reg)))
     assert pen((0.0, 0.0, 0.0)) == (0.0, 0.0)
@@ -187,6 +190,70 @@ def test_regularity_penalties_vanish_for_no_correction_and_see_a_linear_one():
     assert lin > 0 and smooth == pytest.approx(0.0, abs=1e-20)
     assert pen((0.0, 1.0, 0.0))[1] > 0 and pen((0.0, 0.0, 1.0))[1] > 0
     assert pen((0.0, 0.0, 1.0))[0] == pytest.approx(0.0, abs=1e-20)
+
+
+def test_static_divergence_is_no_hopf_point():
+    """A correction that softens the heave spring with airspeed (to zero stiffness at
+    18.3 m/s) makes a real eigenvalue cross first (static divergence): the trace says so
+    instead of dividing by a zero Hopf frequency."""
+    import equinox as eqx
+    import jax.numpy as jnp
+    from ude_fit import UDE, flutter_qs, trace_flutter
+
+    class Softening(eqx.Module):
+        def __call__(self, z):
+            return jnp.stack([1000.0 * (z[4] - 15.0) * z[0], 0.0 * z[4]])
+
+    b = trace_flutter(UDE(flutter_qs(), Softening()), v_range=(15.0, 23.0), amp_max=0.1,
+                      scales=np.array([0.05, 0.1, 0.5, 1.0]))
+    assert b.hopf is None and b.param.size == 0 and "static divergence" in b.reason
+
+
+def test_rest_stability_penalty_sees_only_an_equilibrium_unstable_where_labelled_stable():
+    """The design aerofoil's equilibrium is stable below its Hopf point (24.07 m/s) and
+    unstable above: no penalty where the labels say stable below it, a penalty when an
+    airspeed above it is labelled stable."""
+    import jax.numpy as jnp
+    from ude_fit import UDE, flutter_qs
+    from ude_fit._train import Regularity, _rest_penalty
+
+    V = jnp.linspace(15.0, 28.0, 14)
+    reg = lambda upto: Regularity(V, jnp.zeros((1, 4)), jnp.ones(4), jnp.asarray(5.0),
+                                  jnp.zeros(1), (V <= upto).astype(float), jnp.asarray(15.0))
+    model = UDE(flutter_qs())
+    assert float(_rest_penalty(model, reg(23.0))) == 0.0
+    assert float(_rest_penalty(model, reg(28.0))) > 0.0
+
+
+def test_polynomial_param_correction_is_polynomial_in_the_parameter_and_reloads(tmp_path):
+    """--param-dependence polynomial: U(y; V) is exactly a polynomial of the chosen degree in
+    V at every state (not merely close to one), and a UDE with it survives a save/load."""
+    import jax
+    import jax.numpy as jnp
+    from ude_fit import UDE, flutter_qs, save_model
+    from ude_fit._models import PolynomialParamCorrection, Scaling
+
+    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(3), 3)
+    sc = Scaling(jax.random.normal(k1, (5,)), 1.0 + jnp.abs(jax.random.normal(k2, (5,))),
+                 jnp.array([2.0, 0.5]))
+    ys = jax.random.normal(k3, (6, 4))
+    V = jnp.linspace(5.0, 35.0, 13)
+    for degree in (1, 2):
+        corr = PolynomialParamCorrection(5, 2, sc, degree=degree, width=6, key=k1,
+                                         init_scale=1.0)
+        U = np.asarray(jax.vmap(lambda y: jax.vmap(
+            lambda v: corr(jnp.concatenate([y, v[None]])))(V))(ys))      # (6, 13, 2)
+        for u in U.reshape(-1, 13, 2).transpose(0, 2, 1).reshape(-1, 13):
+            c = np.polyfit(np.asarray(V), u, degree)
+            assert np.max(np.abs(np.polyval(c, np.asarray(V)) - u)) < 1e-9 * np.max(np.abs(u))
+            assert abs(c[0]) > 1e-6 * np.max(np.abs(u))      # the top power is really there
+    model = UDE(flutter_qs(), corr)
+    save_model(tmp_path / "m.eqx", model, role="ude")
+    back, header = load_model(tmp_path / "m.eqx")
+    assert header["correction"]["kind"] == "mlp-polynomial"
+    assert header["correction"]["degree"] == 2
+    z = jnp.concatenate([ys[0], jnp.array([21.0])])
+    assert np.array_equal(np.asarray(back.correction(z)), np.asarray(corr(z)))
 
 
 # ---- divergence: the start is dropped and reported -----------------------------------------

@@ -378,6 +378,13 @@ def trace_flutter(model: UDE, *, v_range, amp_max: float, scales, n: int = 200,
         return Branch("flutter", *(np.zeros(0),) * 4, np.zeros(0, bool), np.zeros(0),
                       np.zeros((0, model.n_state)), hopf=None, reason="no Hopf point in range")
     ns = model.n_state
+    if hopf["omega"] <= 1e-9 * max(1.0, abs(hopf["param"])):
+        # a real eigenvalue crosses first (static divergence, which a fitted correction can
+        # cause): no Hopf point, so no branch of limit cycles born there
+        return Branch("flutter", *(np.zeros(0),) * 4, np.zeros(0, bool), np.zeros(0),
+                      np.zeros((0, ns)), hopf=None,
+                      reason=f"static divergence (real eigenvalue) at {hopf['param']:.4g}, "
+                      "no Hopf point")
     TH = 2 * np.pi / hopf["omega"]
     su = np.concatenate([np.asarray(scales, float), [TH, max(1.0, hopf["param"])]])
     prob = _Autonomous(model, su, n)

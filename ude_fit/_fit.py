@@ -57,9 +57,10 @@ class FitOptions:
             raise ValueError(f"training must be trajectory or periodic, not {self.training!r}")
         if self.mechanistic not in ("equation", "periodic"):
             raise ValueError(f"mechanistic must be equation or periodic, not {self.mechanistic!r}")
-        if self.system != "flutter" and (self.train.linear_weight or self.train.smooth_weight):
-            raise ValueError("the equilibrium and smoothness penalties are for the aerofoil "
-                             "(flutter) only")
+        if self.system != "flutter" and (self.train.linear_weight or self.train.smooth_weight
+                                         or self.train.rest_weight):
+            raise ValueError("the equilibrium, smoothness and rest-stability penalties are "
+                             "for the aerofoil (flutter) only")
         if self.starts < 1:
             raise ValueError(f"starts must be at least 1, not {self.starts}")
 

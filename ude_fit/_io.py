@@ -18,7 +18,8 @@ import numpy as np
 
 from ._data import DataError
 from ._gp import GPCorrection
-from ._models import UDE, MLPCorrection, Scaling, duffing7, flutter_qs, parameters_of
+from ._models import (UDE, MLPCorrection, PolynomialParamCorrection, Scaling, duffing7,
+                      flutter_qs, parameters_of)
 
 MAGIC = "ude_fit-model"
 FORMAT_VERSION = 1
@@ -40,6 +41,12 @@ def _correction_header(c) -> dict | None:
         return {"kind": "mlp", "n_in": int(c.mlp.in_size), "n_out": int(c.mlp.out_size),
                 "width": int(c.mlp.width_size), "depth": int(c.mlp.depth),
                 "layers": len(lin)}
+    if isinstance(c, PolynomialParamCorrection):
+        # n_in/n_out are the correction's (states and parameter in, forces out), not the
+        # network's, which sees the states and has one head per power of the parameter
+        return {"kind": "mlp-polynomial", "n_in": int(c.mlp.in_size) + 1,
+                "n_out": int(c.mlp.out_size) // (c.degree + 1), "degree": int(c.degree),
+                "width": int(c.mlp.width_size), "depth": int(c.mlp.depth)}
     if isinstance(c, GPCorrection):
         return {"kind": "gp", "N": int(c.Z.shape[0]), "d": int(c.Z.shape[1]),
                 "m": int(c.alpha.shape[1])}
@@ -53,6 +60,11 @@ def _skeleton_correction(h: dict | None):
         sc = Scaling(jnp.zeros(h["n_in"]), jnp.ones(h["n_in"]), jnp.ones(h["n_out"]))
         return MLPCorrection(h["n_in"], h["n_out"], sc, width=h["width"], depth=h["depth"],
                              key=jax.random.PRNGKey(0))
+    if h["kind"] == "mlp-polynomial":
+        sc = Scaling(jnp.zeros(h["n_in"]), jnp.ones(h["n_in"]), jnp.ones(h["n_out"]))
+        return PolynomialParamCorrection(h["n_in"], h["n_out"], sc, degree=h["degree"],
+                                         width=h["width"], depth=h["depth"],
+                                         key=jax.random.PRNGKey(0))
     if h["kind"] == "gp":
         N, d, m = h["N"], h["d"], h["m"]
         z = lambda *s: jnp.zeros(s)

@@ -197,6 +197,14 @@ class Scaling(eqx.Module):
     out_scale: jax.Array
 
 
+def _small_last_layer(mlp: eqx.nn.MLP, init_scale: float) -> eqx.nn.MLP:
+    """``mlp`` with its last layer scaled by ``init_scale``: a fresh UDE is then the
+    mechanistic model plus a near-zero correction."""
+    last = mlp.layers[-1]
+    return eqx.tree_at(lambda m: (m.layers[-1].weight, m.layers[-1].bias), mlp,
+                       (last.weight * init_scale, last.bias * init_scale))
+
+
 class MLPCorrection(eqx.Module):
     """U(z) = out_scale * MLP((z - z_mean) / z_scale), sigmoid hidden units.
 
@@ -209,15 +217,51 @@ class MLPCorrection(eqx.Module):
     def __init__(self, n_in: int, n_out: int, scaling: Scaling, *, width: int = 12,
                  depth: int = 2, key, init_scale: float = 1e-2):
         mlp = eqx.nn.MLP(n_in, n_out, width, depth, activation=jax.nn.sigmoid, key=key)
-        last = mlp.layers[-1]
-        mlp = eqx.tree_at(lambda m: (m.layers[-1].weight, m.layers[-1].bias), mlp,
-                          (last.weight * init_scale, last.bias * init_scale))
-        self.mlp = mlp
+        self.mlp = _small_last_layer(mlp, init_scale)
         self.scaling = scaling
 
     def __call__(self, z):
         s = self.scaling
         return s.out_scale * self.mlp((z - s.z_mean) / s.z_scale)
+
+
+class PolynomialParamCorrection(eqx.Module):
+    """A correction that is a polynomial of degree ``degree`` in the parameter (the last
+    feature) with state-dependent coefficients:
+
+        U(y; p) = out_scale * sum_k s^k N_k((y - y_mean) / y_scale),  s = (p - p_mean) / p_scale,
+
+    the ``degree + 1`` coefficient functions being the output heads of one MLP of the
+    state alone. Quasi-steady aerodynamic forces depend on the airspeed through V (on the
+    velocities) and V^2 (on the displacements), so degree 2 spans them; unlike a network
+    that takes the airspeed as an input, this one cannot bend back and forth in it, which
+    is what makes a fitted branch snake through scattered measurements.
+    """
+    mlp: eqx.nn.MLP
+    scaling: Scaling
+    degree: int = eqx.field(static=True)
+
+    def __init__(self, n_in: int, n_out: int, scaling: Scaling, *, degree: int = 2,
+                 width: int = 12, depth: int = 2, key, init_scale: float = 1e-2):
+        if degree < 0:
+            raise ValueError(f"the polynomial degree must be at least 0, not {degree}")
+        mlp = eqx.nn.MLP(n_in - 1, n_out * (degree + 1), width, depth,
+                         activation=jax.nn.sigmoid, key=key)
+        self.mlp = _small_last_layer(mlp, init_scale)
+        self.scaling = scaling
+        self.degree = degree
+
+    def coefficients(self, y_features):
+        """The heads N_0..N_degree at the (unscaled) state features: (degree + 1, n_out)."""
+        s = self.scaling
+        x = (y_features - s.z_mean[:-1]) / s.z_scale[:-1]
+        return self.mlp(x).reshape(self.degree + 1, -1)
+
+    def __call__(self, z):
+        s = self.scaling
+        p = (z[-1] - s.z_mean[-1]) / s.z_scale[-1]
+        powers = p ** jnp.arange(self.degree + 1)
+        return s.out_scale * (powers @ self.coefficients(z[:-1]))
 
 
 # ---------------------------------------------------------------------------------------

@@ -34,7 +34,7 @@ import optax
 
 from ._flow import diffrax_samples, rk4_orbit
 from ._identify import TrainingData, residual_forces
-from ._models import UDE, Drive, MLPCorrection, feature_scaling
+from ._models import UDE, Drive, MLPCorrection, PolynomialParamCorrection, feature_scaling
 
 
 class Diverged(RuntimeError):
@@ -63,6 +63,12 @@ class TrainConfig:
     linear_weight: float | None = None
     smooth_weight: float | None = None
     param_scale: float = 1.0     # the parameter input is standardised by this times its spread
+    rest_weight: float = 0.0     # aerofoil: the equilibrium stable where the data says so
+    # how the NN correction depends on the parameter: "input" (a network input like the
+    # states) or "polynomial" (a polynomial of param_degree in it, state-dependent
+    # coefficients; PolynomialParamCorrection)
+    param_dependence: str = "input"
+    param_degree: int = 2
 
     def for_system(self, system: str) -> "TrainConfig":
         """This configuration with every None field set to ``system``'s default."""
@@ -70,10 +76,17 @@ class TrainConfig:
             raise ValueError(f"unknown system {system!r} (flutter or oscillator)")
         cfg = dataclasses.replace(self, **{k: v for k, v in SYSTEM_DEFAULTS[system].items()
                                            if getattr(self, k) is None})
+        if cfg.param_dependence not in PARAM_DEPENDENCE:
+            raise ValueError(f"param_dependence must be input or polynomial, not "
+                             f"{cfg.param_dependence!r}")
+        if cfg.param_degree < 1:
+            raise ValueError(f"param_degree must be at least 1, not {cfg.param_degree}")
         if cfg.equation_lbfgs_steps is None:
             cfg = dataclasses.replace(cfg, equation_lbfgs_steps=cfg.lbfgs_steps)
         return cfg
 
+
+PARAM_DEPENDENCE = ("input", "polynomial")
 
 # Per-system defaults. The forced oscillator's orbits are smooth enough at 64 RK4 steps per
 # period (2 per sample; amplitude within 1e-5 of the converged orbit up to 10 mm), which
@@ -93,11 +106,15 @@ def _trainable_spec(correction):
                        replace=jax.tree_util.tree_map(eqx.is_inexact_array, correction.mlp))
 
 
-def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig) -> MLPCorrection:
+def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig):
     Z, R = residual_forces(model, data)
     sc = feature_scaling(Z, R)
     if cfg.param_scale != 1.0:
         sc = eqx.tree_at(lambda s: s.z_scale, sc, sc.z_scale.at[-1].multiply(cfg.param_scale))
+    if cfg.param_dependence == "polynomial":
+        return PolynomialParamCorrection(Z.shape[1], R.shape[1], sc, degree=cfg.param_degree,
+                                         width=cfg.width, depth=cfg.depth, key=key,
+                                         init_scale=cfg.init_scale)
     return MLPCorrection(Z.shape[1], R.shape[1], sc, width=cfg.width,
                          depth=cfg.depth, key=key, init_scale=cfg.init_scale)
 
@@ -126,6 +143,8 @@ class Regularity(eqx.Module):
     y_scale: jax.Array    # (n_state,)
     v_span: jax.Array     # () the measured airspeeds' spread
     ys_V: jax.Array       # (k,) the airspeed of each state in ys
+    rest_stable: jax.Array  # (m,) 1.0 where V holds a stable equilibrium by the data
+    omega: jax.Array      # () the measured orbits' mean angular frequency
 
 
 def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> Regularity:
@@ -136,9 +155,15 @@ def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> 
     V = np.linspace(max(0.5, P.min() - 1.5 * span), P.max() + 0.75 * span, n_v)
     ys = np.asarray(data.ys)
     step = max(1, ys.shape[1] // per_orbit)
+    # an unstable limit cycle surrounds a stable equilibrium (it is the boundary of its
+    # basin): the equilibrium is stable up to the highest airspeed of one
+    lab = np.asarray(data.label)
+    v_stable = P[lab < 0].max() if np.any(lab < 0) else -np.inf
     return Regularity(jnp.asarray(V), jnp.asarray(ys[:, ::step].reshape(-1, ys.shape[-1])),
                       jnp.asarray(data.y_scale), jnp.asarray(span),
-                      jnp.asarray(np.repeat(P, len(range(0, ys.shape[1], step)))))
+                      jnp.asarray(np.repeat(P, len(range(0, ys.shape[1], step)))),
+                      jnp.asarray((V <= v_stable).astype(float)),
+                      jnp.asarray(float(np.mean(2 * np.pi / np.asarray(data.period)))))
 
 
 def _equilibrium_penalty(model: UDE, reg: Regularity):
@@ -182,11 +207,29 @@ def _smoothness_penalty(model: UDE, reg: Regularity):
     return jnp.mean(d2 ** 2) + jnp.mean(d3 ** 2)
 
 
+def _rest_penalty(model: UDE, reg: Regularity, margin: float = 1e-3):
+    """Squared hinge on the equilibrium's largest growth rate (over the orbits' angular
+    frequency) at the airspeeds where the data says the equilibrium is stable: a correction
+    otherwise free there can move the Hopf point far below the measured orbits."""
+    y0 = jnp.zeros(model.n_state)
+
+    def one(V):
+        d = Drive.of(V)
+        J = jax.jacfwd(lambda y: model.vector_field(0.0, y, d))(y0)
+        return jax.nn.relu(jnp.max(jnp.real(jnp.linalg.eigvals(J))) / reg.omega + margin) ** 2
+
+    r = jax.vmap(one)(reg.V)
+    return jnp.sum(r * reg.rest_stable) / jnp.maximum(1.0, jnp.sum(reg.rest_stable))
+
+
 def _regularity(model: UDE, reg: Regularity | None, rw):
-    w_lin, w_smooth = rw
+    w_lin, w_smooth = rw[:2]
+    w_rest = rw[2] if len(rw) > 2 else 0.0
     if reg is None:
         return 0.0
     out = 0.0
+    if w_rest:
+        out = out + w_rest * _rest_penalty(model, reg)
     if w_lin:
         out = out + w_lin * _equilibrium_penalty(model, reg)
     if w_smooth:
@@ -264,7 +307,7 @@ def _periodic_loss(params, static, mech, data: TrainingData, sub: int, weights, 
     model = UDE(mech, eqx.combine(params["corr"], static))
     loss = _periodic_objective(model, params, data, sub, weights[:3])
     return (loss + weights[3] * _weight_penalty(params["corr"])
-            + _regularity(model, reg, weights[4:6]))
+            + _regularity(model, reg, weights[4:7]))
 
 
 def _mech_leaves(mech):
@@ -409,7 +452,7 @@ def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training
     info = {"training": training}
     Z, R = residual_forces(UDE(mech), data)
     params = {"corr": trainable}
-    rw = (cfg.linear_weight, cfg.smooth_weight)
+    rw = (cfg.linear_weight, cfg.smooth_weight, cfg.rest_weight)
     reg = regularity_points(data) if model.system == "flutter" and any(rw) else None
     params, v = minimize(_equation_loss, params,
                          (static, mech, jnp.asarray(Z), jnp.asarray(R), reg, rw),

@@ -118,9 +118,21 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--smoothness-penalty", type=_nonnegative_float("--smoothness-penalty"),
                    metavar="W", help="aerofoil: penalty on the correction's curvature in "
                    "airspeed and amplitude, against diagrams that snake (default 0)")
+    f.add_argument("--rest-stability", type=_nonnegative_float("--rest-stability"),
+                   default=0.0, metavar="W", help="aerofoil: penalty on any growth rate of the "
+                   "equilibrium at the airspeeds where the data shows it stable (up to the "
+                   "highest unstable orbit's), so the correction cannot move the Hopf point "
+                   "below the measured orbits (default 0)")
     f.add_argument("--param-scale", type=_positive_float("--param-scale"), default=1.0,
                    metavar="F", help="the network's parameter input is standardised by F times "
                    "its spread in the data; larger F, slower variation with it (default 1)")
+    f.add_argument("--param-dependence", default="input", choices=("input", "polynomial"),
+                   help="how the NN correction depends on the bifurcation parameter: as an "
+                   "input like the states (default), or as a polynomial in it "
+                   "(--param-degree) with state-dependent coefficients, which cannot wiggle "
+                   "in it (the airspeed enters quasi-steady aerodynamics as V and V^2)")
+    f.add_argument("--param-degree", type=_positive_int("--param-degree"), default=2,
+                   metavar="D", help="--param-dependence polynomial: the degree (default 2)")
     f.add_argument("--reference-hopf", type=_finite_float("--reference-hopf"), metavar="V",
                    help="known Hopf airspeed (m/s) for the error figures")
     f.add_argument("--reference-fold", type=_finite_float("--reference-fold"), metavar="V",
@@ -248,13 +260,16 @@ def cmd_fit(args, argv) -> int:
                                    ("fold", args.reference_fold)) if v is not None}
     if reference and args.system != "flutter":
         raise UsageError("--reference-hopf/--reference-fold apply to --system flutter only")
-    if args.system != "flutter" and (args.equilibrium_penalty or args.smoothness_penalty):
-        raise UsageError("--equilibrium-penalty/--smoothness-penalty apply to --system "
-                         "flutter only")
+    if args.system != "flutter" and (args.equilibrium_penalty or args.smoothness_penalty
+                                     or args.rest_stability):
+        raise UsageError("--equilibrium-penalty/--smoothness-penalty/--rest-stability apply "
+                         "to --system flutter only")
     if args.approximator != "nn" and (args.equilibrium_penalty or args.smoothness_penalty
-                                      or args.param_scale != 1.0):
-        raise UsageError("--equilibrium-penalty/--smoothness-penalty/--param-scale apply to "
-                         "--approximator nn only")
+                                      or args.rest_stability or args.param_scale != 1.0):
+        raise UsageError("--equilibrium-penalty/--smoothness-penalty/--rest-stability/"
+                         "--param-scale apply to --approximator nn only")
+    if args.approximator != "nn" and args.param_dependence != "input":
+        raise UsageError("--param-dependence polynomial applies to --approximator nn only")
     opts = FitOptions(system=args.system, approximator=args.approximator,
                       training=args.training, starts=args.starts, seed=args.seed,
                       mechanistic=args.mechanistic,
@@ -262,7 +277,10 @@ def cmd_fit(args, argv) -> int:
                                         weight_decay=args.weight_decay,
                                         linear_weight=args.equilibrium_penalty,
                                         smooth_weight=args.smoothness_penalty,
-                                        param_scale=args.param_scale))
+                                        param_scale=args.param_scale,
+                                        rest_weight=args.rest_stability,
+                                        param_dependence=args.param_dependence,
+                                        param_degree=args.param_degree))
     progress = _Progress(args.quiet)
     progress._say(f"{len(ds)} orbits loaded ({args.system}); fitting")
     res = fit(ds, opts, reference=reference or None, progress=progress)
