@@ -324,3 +324,36 @@ def test_trajectory_training_lowers_the_trajectory_error(tmp_path):
 
     fresh = UDE(mech, new_correction(UDE(mech), data, key, cfg))
     assert loss(model) < 0.5 * loss(fresh)
+
+
+def test_a_point_at_a_model_fold_takes_the_stability_of_its_side(monkeypatch):
+    """A measured unstable orbit a hair from the model's fold is compared with the orbit at
+    the fold, which it may match only because the branch beside the fold is unstable; the
+    nearest traced orbit there can lie on the stable side, and must not relabel the point."""
+    from types import SimpleNamespace
+
+    from ude_fit import _metrics
+
+    branch = SimpleNamespace(param=np.array([20.70, 20.62, 20.70]),
+                             amplitude=np.array([0.030, 0.027, 0.024]),
+                             stable=np.array([True, True, False]),
+                             folds=[{"param": 20.60, "amplitude": 0.027}])
+
+    def orbit_at(model, b, param, stable, scales=None, near=None):
+        if stable is not None:
+            return None                      # no unstable orbit at 20.6 itself
+        return {"amplitude": 0.0271, "stable": True, "samples": None}
+
+    monkeypatch.setattr(_metrics, "orbit_at", orbit_at)
+    o = SimpleNamespace(parameter=20.6, amplitude=0.027, stable=False, frequency=2.3)
+    sol = _metrics.model_orbit(None, {"flutter": branch}, o, scales=None, fold_tolerance=0.05)
+    assert sol["at_fold"] and sol["parameter"] == 20.60 and sol["stable"] is False
+    # a stable point there is compared with the stable side
+    o.stable = True
+    assert _metrics.model_orbit(None, {"flutter": branch}, o, scales=None,
+                                fold_tolerance=0.05)["stable"] is True
+    # beside a fold whose sides are both stable, an unstable point finds nothing
+    branch.stable = np.array([True, True, True])
+    o.stable = False
+    assert _metrics.model_orbit(None, {"flutter": branch}, o, scales=None,
+                                fold_tolerance=0.05) is None

@@ -158,8 +158,11 @@ def model_orbit(model, diagram: dict, o, *, scales,
                            near=float(b.amplitude[k]))
             if sol is None:
                 continue
+            # the fold's stability is the side the point is compared with: the nearest
+            # traced orbit may lie on the other side of the fold
             sol = {**sol, "amplitude": float(f["amplitude"]), "at_fold": True,
-                   "parameter": float(f["param"])}
+                   "parameter": float(f["param"]),
+                   "stable": o.stable if o.stable is not None else sol["stable"]}
             if better(sol):
                 best = sol
     return best
