@@ -29,12 +29,16 @@ def truth():
     return flutter_lco_branch(V_max=24.5)
 
 
-@pytest.fixture(scope="module")
-def sigma0_campaign(tmp_path_factory):
-    out = tmp_path_factory.mktemp("flutter") / "sigma0.h5"
-    r = run_cli("run", str(REPO / "campaigns" / "flutter_sigma0.toml"), "--out", str(out), "--quiet")
+def _run_example(tmp_path_factory, name: str) -> Path:
+    out = tmp_path_factory.mktemp("flutter") / f"{name}.h5"
+    r = run_cli("run", str(REPO / "campaigns" / f"{name}.toml"), "--out", str(out), "--quiet")
     assert r.returncode == 0, r.stderr
     return out
+
+
+@pytest.fixture(scope="module")
+def sigma0_campaign(tmp_path_factory):
+    return _run_example(tmp_path_factory, "flutter_sigma0")
 
 
 def test_sigma0_stable_and_unstable_cycles_match_the_truth(sigma0_campaign, truth):
@@ -58,10 +62,7 @@ def test_sigma0_stable_and_unstable_cycles_match_the_truth(sigma0_campaign, trut
 
 @pytest.fixture(scope="module")
 def sigma002_campaign(tmp_path_factory):
-    out = tmp_path_factory.mktemp("flutter") / "sigma002.h5"
-    r = run_cli("run", str(REPO / "campaigns" / "flutter_sigma002.toml"), "--out", str(out), "--quiet")
-    assert r.returncode == 0, r.stderr
-    return out
+    return _run_example(tmp_path_factory, "flutter_sigma002")
 
 
 def test_sigma002_same_branches_within_3_percent_of_the_truth(sigma002_campaign, truth, capsys):
