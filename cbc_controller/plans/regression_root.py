@@ -28,15 +28,10 @@ class LineRoot:
     residual_sd: float   # scatter of one measurement about the line
 
 
-def fit_line_root(samples, centre: float, half_width: float,
-                  noise_floor: float = 0.0) -> LineRoot | None:
+def fit_line_root(samples, centre: float, half_width: float) -> LineRoot | None:
     """Least-squares line e = c + s (A - centre) through the samples (A, e) with
     |A - centre| <= half_width; the root's standard error from the fit's covariance.
-
-    `noise_floor` is a lower bound on one measurement's standard deviation (the
-    scatter of a handful of samples can look deceptively small). None when the
-    samples do not determine a line (fewer than 3, or a single target).
-    """
+    None when the samples do not determine a line (fewer than 3, or a single target)."""
     pts = np.array([(a, e) for a, e in samples if abs(a - centre) <= half_width], dtype=float)
     if len(pts) < 3:
         return None
@@ -52,7 +47,6 @@ def fit_line_root(samples, centre: float, half_width: float,
     dof = len(pts) - 2
     res = y - X @ coef
     sd = math.sqrt(float(res @ res) / dof) if dof > 0 else 0.0
-    sd = max(sd, noise_floor)
     cov = sd ** 2 * np.linalg.inv(X.T @ X)
     x0 = -c / s                                   # root relative to the centre
     # root = centre - c/s: gradient (-1/s, c/s^2) with respect to (c, s)
