@@ -213,6 +213,7 @@ def test_rest_stability_penalty_sees_only_an_equilibrium_unstable_where_labelled
     """The design aerofoil's equilibrium is stable below its Hopf point (24.07 m/s) and
     unstable above: no penalty where the labels say stable below it, a penalty when an
     airspeed above it is labelled stable."""
+    import equinox as eqx
     import jax.numpy as jnp
     from ude_fit import UDE, flutter_qs
     from ude_fit._train import Regularity, _rest_penalty
@@ -223,6 +224,22 @@ def test_rest_stability_penalty_sees_only_an_equilibrium_unstable_where_labelled
     model = UDE(flutter_qs())
     assert float(_rest_penalty(model, reg(23.0))) == 0.0
     assert float(_rest_penalty(model, reg(28.0))) > 0.0
+    # beyond the Hopf point the unstable orbits point to, the equilibrium must be unstable
+    beyond = lambda v: eqx.tree_at(lambda r: r.rest_unstable, reg(23.0),
+                                   (V >= v).astype(float), is_leaf=lambda x: x is None)
+    assert float(_rest_penalty(model, beyond(25.0))) == 0.0
+    assert float(_rest_penalty(model, beyond(20.0))) > 0.0
+
+
+def test_hopf_from_unstable_orbits_is_where_their_amplitude_squared_reaches_zero():
+    from ude_fit._train import _hopf_from_unstable
+
+    P = np.array([20.7, 22.0, 24.0, 25.0, 25.8, 21.0])
+    amp = np.sqrt(np.maximum(0.0, 4e-4 * (26.3 - P)))
+    lab = np.array([-1, -1, -1, -1, -1, 1])
+    assert _hopf_from_unstable(P, amp, lab) == pytest.approx(26.3)
+    assert _hopf_from_unstable(P, amp, np.ones(6)) == np.inf          # no unstable orbits
+    assert _hopf_from_unstable(P[:3], amp[::-1][:3], lab[:3]) == np.inf   # growing with V
 
 
 def test_polynomial_param_correction_is_polynomial_in_the_parameter_and_reloads(tmp_path):
@@ -357,3 +374,117 @@ def test_a_point_at_a_model_fold_takes_the_stability_of_its_side(monkeypatch):
     o.stable = False
     assert _metrics.model_orbit(None, {"flutter": branch}, o, scales=None,
                                 fold_tolerance=0.05) is None
+
+
+def test_a_closed_branch_is_traced_once_and_its_folds_counted_once():
+    """An isola (a closed curve of orbits) traced past its start would find its folds again
+    on every lap: the continuation stops when it is back where it started. The curve here
+    is the circle x^2 + (p - 20)^2 = 1 in (state, parameter): two folds, at p = 19 and 21."""
+    from types import SimpleNamespace
+
+    from ude_fit import _continuation as cont
+    from ude_fit._metrics import locations
+
+    class Circle:
+        par_index = 1
+
+        def evaluate(self, us):
+            x, p = us
+            return cont._Eval(np.array([x ** 2 + (p - 20.0) ** 2 - 1.0]),
+                              np.array([[2 * x, 2 * (p - 20.0)]]), np.zeros((4, 1)))
+
+    first = cont._newton(Circle(), np.array([1.0, 20.0]), np.array([0.0, 1.0]),
+                         np.array([1.0, 20.0]))
+    pts, _, folds, reason = cont._continue(Circle(), first, np.array([0.0, 1.0]), ds=0.05,
+                                           ds_min=1e-6, ds_max=0.1, max_points=2000,
+                                           stop=lambda problem, pt: "")
+    assert reason == "closed loop"
+    assert sorted(round(float(pts[k].us[1])) for k in folds) == [19, 21]
+    assert len(pts) < 200                    # one lap of 2 pi at steps up to 0.1
+    # the same fold reached from two measured orbits (main branch and an "isola" that is a
+    # stretch of it) counts once
+    f = {"param": 21.0, "amplitude": 0.03, "period": 0.4}
+    g = {"param": 19.0, "amplitude": 0.02, "period": 0.4}
+    main = SimpleNamespace(hopf={"param": 25.0}, folds=[f])
+    again = SimpleNamespace(folds=[dict(f, param=21.0 + 1e-9), g])
+    loc = locations({"flutter": main, "flutter/1": again})
+    assert loc["folds"] == [21.0] and loc["isola_folds"] == [19.0]
+
+
+def test_data_scatter_is_the_residual_standard_deviation_about_quadratics():
+    """Points exactly on a quadratic add nothing; scatter orthogonal to the quadratics
+    comes back whole, its sum of squares divided by the degrees of freedom left (4 + 7
+    points, 3 + 3 taken by the two fits), not by the number of points."""
+    from ude_fit import Orbit, OrbitDataset
+    from ude_fit._fit import data_scatter
+
+    def orbit(V, A, stable):
+        c = np.zeros((2, 15))
+        c[0, 1] = A
+        return Orbit(V, 2.4, stable, c, None, np.array([np.nan, np.nan]), np.nan, f"{V}")
+
+    Vs, Vu = np.array([20.7, 21.5, 22.4, 23.2]), np.linspace(20.6, 25.8, 7)
+    basis = np.vander(Vu, 3)
+    e = np.array([1.0, -2.0, 0.5, 3.0, -1.0, 0.0, 2.0]) * 1e-3
+    e -= basis @ np.linalg.lstsq(basis, e, rcond=None)[0]      # orthogonal to quadratics
+    As = 0.05 + 0.014 * (Vs - 20.7) - 1e-3 * (Vs - 20.7) ** 2
+    Au = 0.03 - 2e-4 * (Vu - 20.6) ** 2 + e
+    ds = OrbitDataset("flutter", [orbit(v, a, True) for v, a in zip(Vs, As)]
+                      + [orbit(v, a, False) for v, a in zip(Vu, Au)], ["synthetic"])
+    a_max = max(As.max(), Au.max())
+    assert data_scatter(ds) == pytest.approx(np.sqrt(np.sum(e ** 2) / 5) / a_max, rel=1e-6)
+
+
+def test_a_start_that_snakes_through_the_points_does_not_set_the_bar():
+    """Within twice the best start's error: the best *credible* start's. A start with 11
+    folds fits the points closer than a smooth diagram can, and is not adequate itself."""
+    from ude_fit._fit import judge_starts
+
+    mech = {"branch_rms": 0.15, "missed": 3, "folds": [15.8], "isola_folds": []}
+
+    def start(rms, folds, missed=0):
+        return {"branch_rms": rms, "missed": missed, "folds": folds, "isola_folds": []}
+
+    snake = start(0.006, [20.1, 20.4, 21.0, 22.9, 23.3, 23.4], )
+    smooth = start(0.035, [20.4, 25.9])
+    loose = start(0.09, [20.2])
+    missing = start(0.004, [20.4], missed=1)
+    opts = FitOptions(system="flutter")
+    assert judge_starts([snake, smooth, loose, None, missing], mech, opts, scatter=0.02) == [
+        False, True, False, False, False]
+    # nothing credible: nothing adequate, whatever the floor and the scatter
+    assert judge_starts([snake, missing], mech, opts, scatter=0.5) == [False, False]
+
+
+def test_energy_shape_penalty_sees_only_work_convex_in_amplitude_squared():
+    """Net work per cycle over A^2 of a correction -c(A) h' on a harmonic heave orbit: zero
+    penalty for no correction, linear damping (constant) and one whose damping falls with
+    A^2 (concave); a penalty when it dips and rises again (two roots per airspeed)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+    from ude_fit import UDE, flutter_qs
+    from ude_fit._train import Regularity, _energy_shape_penalty
+
+    class Damping(eqx.Module):
+        c: tuple = eqx.field(static=True)
+
+        def __call__(self, z):
+            y = z[:4]
+            u = (y[0] ** 2 + (y[2] / 15.0) ** 2) / 0.1 ** 2      # (A / 0.1 m)^2 on the orbit
+            c0, c1, c2 = self.c
+            return jnp.stack([-(c0 + c1 * u + c2 * u ** 2) * y[2], 0.0 * z[4]])
+
+    n = 32
+    t = np.arange(n) / n * 2 * np.pi
+    shape = np.stack([np.cos(t), 0.02 * np.cos(t), -15.0 * np.sin(t), -0.3 * np.sin(t)], -1)
+    V = jnp.linspace(15.0, 28.0, 4)
+    reg = Regularity(V, jnp.zeros((1, 4)), jnp.ones(4), jnp.asarray(5.0), jnp.zeros(1),
+                     jnp.ones(4), jnp.asarray(15.0), jnp.asarray(shape[None]),
+                     jnp.asarray([22.0]), jnp.asarray([2 * np.pi / 15.0 / n]),
+                     jnp.asarray(np.linspace(0.004, 0.13, 24)))
+    pen = lambda c: float(_energy_shape_penalty(UDE(flutter_qs(), Damping(c)), reg))
+    assert pen((0.0, 0.0, 0.0)) == 0.0
+    assert pen((5.0, 0.0, 0.0)) == pytest.approx(0.0, abs=1e-12)
+    # damping -c(u): work / A^2 ~ -c(u); concave when c is convex
+    assert pen((5.0, -3.0, 2.0)) == pytest.approx(0.0, abs=1e-12)
+    assert pen((5.0, 3.0, -2.0)) > 1e-6

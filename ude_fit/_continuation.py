@@ -315,6 +315,11 @@ def _continue(problem, first: _Point, t0, *, ds, ds_min, ds_max, max_points, sto
             folds.append(len(pts) - 1)
         pts.append(new)
         tans.append(t_new)
+        if len(pts) > 3 and _passes(pts[-2].us, new.us, first.us) and t_new @ tans[0] > 0:
+            # back where it started, heading the same way: a closed curve (an isola, or a
+            # loop), traced once; going on would find every fold again on each lap
+            reason = "closed loop"
+            break
         t = t_new
         if new.iters <= 3:
             ds = min(1.4 * ds, ds_max)
@@ -325,6 +330,16 @@ def _continue(problem, first: _Point, t0, *, ds, ds_min, ds_max, max_points, sto
             reason = why
             break
     return pts, tans, folds, reason
+
+
+def _passes(a, b, c) -> bool:
+    """Whether the step from ``a`` to ``b`` passes ``c`` (within a third of the step)."""
+    d = b - a
+    L2 = float(d @ d)
+    if L2 == 0.0:
+        return False
+    w = float(np.clip((c - a) @ d / L2, 0.0, 1.0))
+    return float(np.linalg.norm(a + w * d - c)) <= np.sqrt(L2) / 3
 
 
 def _locate_fold(problem, pts, tans, k):
@@ -361,12 +376,22 @@ def _assemble(problem, system, pts, tans, folds, reason, **extra) -> Branch:
         except (RuntimeError, ValueError):
             fp = pts[k]
         r = _record(problem, fp)
-        fold_recs.append({"param": r["param"], "amplitude": r["amplitude"], "period": r["period"]})
+        rec = {"param": r["param"], "amplitude": r["amplitude"], "period": r["period"]}
+        if not any(same_fold(rec, f) for f in fold_recs):
+            fold_recs.append(rec)
     col = lambda name: np.array([r[name] for r in recs])
     return Branch(system=system, param=col("param"), amplitude=col("amplitude"),
                   period=col("period"), stable=col("stable").astype(bool),
                   max_multiplier=col("max_multiplier"), y0=np.stack(col("y0")),
                   folds=fold_recs, reason=reason, **extra)
+
+
+def same_fold(f: dict, g: dict, rel: float = 1e-4) -> bool:
+    """Whether two fold records are one fold of the diagram (found twice: a curve traced
+    past its start, or the same branch reached from two measured orbits)."""
+    return (abs(f["param"] - g["param"]) <= rel * max(1.0, abs(g["param"]))
+            and abs(f["amplitude"] - g["amplitude"]) <= 1e3 * rel * max(
+                abs(g["amplitude"]), 1e-12))
 
 
 def trace_flutter(model: UDE, *, v_range, amp_max: float, scales, n: int = 200,
@@ -550,6 +575,9 @@ def trace_flutter_through(model: UDE, y0, T: float, V: float, *, v_range, amp_ma
                                              stop=stop)
         halves.append((seq, tans, folds, reason))
     (fs, ft, ff, fr), (bs, bt, bf, br) = halves
+    if fr == "closed loop":
+        # the forward half went all the way round: it is the whole isola
+        return _assemble(prob, "flutter", fs, ft, ff, fr, hopf=None)
     # backward half reversed (its tangents flipped) + forward half without the shared point
     m = len(bs)
     pts = bs[::-1] + fs[1:]

@@ -6,9 +6,9 @@ both models, their traced diagrams, the metrics side by side and a record of eve
 Adequacy (the paper found single trainings often land in poor local minima): a start is
 *adequate* when its diagram has an orbit at every measured point with the measured
 stability (nothing missed), its branch RMS error is below the mechanistic model's, and
-it is within ``adequacy_factor`` times the best start's error, or under
-``adequacy_floor``, or under the data's own scatter about smooth branches
-(:func:`data_scatter`), whichever is largest. The kept start is the adequate one with the
+it is within ``adequacy_factor`` times the error of the best start that passes the
+other checks, or under ``adequacy_floor``, or under the data's own scatter about smooth
+branches (:func:`data_scatter`), whichever is largest. The kept start is the adequate one with the
 smallest branch error; if none is adequate, the one with the fewest missed points and
 then the smallest error, and the result says so.
 """
@@ -58,9 +58,10 @@ class FitOptions:
         if self.mechanistic not in ("equation", "periodic"):
             raise ValueError(f"mechanistic must be equation or periodic, not {self.mechanistic!r}")
         if self.system != "flutter" and (self.train.linear_weight or self.train.smooth_weight
-                                         or self.train.rest_weight):
-            raise ValueError("the equilibrium, smoothness and rest-stability penalties are "
-                             "for the aerofoil (flutter) only")
+                                         or self.train.rest_weight
+                                         or self.train.energy_weight):
+            raise ValueError("the equilibrium, smoothness, rest-stability and energy-shape "
+                             "penalties are for the aerofoil (flutter) only")
         if self.starts < 1:
             raise ValueError(f"starts must be at least 1, not {self.starts}")
 
@@ -178,22 +179,28 @@ def nominal_mechanistic(system: str):
 
 
 def data_scatter(ds: OrbitDataset) -> float:
-    """How far the measured points themselves lie from smooth branches: RMS residual of a
-    quadratic in the parameter through each stability class (of 4 or more points; per
-    frequency for the oscillator), over the largest amplitude. No fit can be asked to be
-    closer to the data than this."""
+    """How far the measured points themselves lie from smooth branches: the residual
+    standard deviation of a quadratic in the parameter through each stability class (of 4
+    or more points; per frequency for the oscillator), over the largest amplitude. No fit
+    can be asked to be closer to the data than this.
+
+    The residuals' plain RMS would underestimate the scatter: each quadratic is fitted to
+    the very points it is judged on and takes 3 of their degrees of freedom (with 4 points,
+    3 of 4), so the sum of squares is divided by the points left over, as the textbook
+    unbiased estimate of a regression's residual variance does."""
     A, a_max = ds.amplitudes(), float(ds.amplitudes().max())
     P = ds.parameters()
     groups = [np.ones(len(ds), bool)] if ds.system == "flutter" else [
         np.round(ds.frequencies(), 6) == f for f in ds.frequencies_group()]
-    res = []
+    res, dof = [], 0
     for g in groups:
         for label in (True, False):
             m = g & np.array([o.stable is label for o in ds.orbits])
             if m.sum() >= 4 and np.ptp(P[m]) > 0:
                 c = np.polyfit(P[m], A[m], 2)
                 res.extend((A[m] - np.polyval(c, P[m])).tolist())
-    return float(np.sqrt(np.mean(np.square(res))) / a_max) if res else 0.0
+                dof += int(m.sum()) - 3
+    return float(np.sqrt(np.sum(np.square(res)) / dof) / a_max) if dof > 0 else 0.0
 
 
 def fold_count(m: dict) -> int:
@@ -203,7 +210,9 @@ def fold_count(m: dict) -> int:
     return n + len(m.get("isola_folds") or [])
 
 
-def _is_adequate(m, best_rms, mech_m, opts, scatter: float = 0.0) -> bool:
+def _credible(m, mech_m) -> bool:
+    """Every check of adequacy but the comparison with the other starts: nothing missed,
+    no more folds than allowed, below the mechanistic model's error (at every frequency)."""
     if m is None or m["branch_rms"] is None or m["missed"] > 0:
         return False
     # qualitatively the mechanistic model's diagram: at most one extra fold per branch
@@ -219,7 +228,26 @@ def _is_adequate(m, best_rms, mech_m, opts, scatter: float = 0.0) -> bool:
         mine = m["per_frequency"].get(f, {}).get("branch_rms")
         if v["branch_rms"] is not None and (mine is None or mine >= v["branch_rms"]):
             return False
-    return m["branch_rms"] <= max(opts.adequacy_factor * best_rms, opts.adequacy_floor, scatter)
+    return True
+
+
+def _is_adequate(m, best_rms, mech_m, opts, scatter: float = 0.0) -> bool:
+    """Credible, and within ``adequacy_factor`` of the best credible start's error (or
+    under the floor, or under the data's own scatter)."""
+    return _credible(m, mech_m) and m["branch_rms"] <= max(
+        opts.adequacy_factor * best_rms, opts.adequacy_floor, scatter)
+
+
+def judge_starts(start_metrics: list, mech_m: dict, opts: FitOptions,
+                 scatter: float = 0.0) -> list[bool]:
+    """Adequacy of each start (None for a dropped one). The reference for "within a factor
+    of the best" is the best start that is itself credible: one that snakes through every
+    point (folds the data does not show) fits closer than a model of the physics should,
+    and must not set the bar."""
+    best_rms = min((m["branch_rms"] for m in start_metrics if _credible(m, mech_m)),
+                   default=np.inf)
+    return [m is not None and _is_adequate(m, best_rms, mech_m, opts, scatter)
+            for m in start_metrics]
 
 
 def _train_start(mech_model, data: TrainingData, opts: FitOptions, k: int, key, progress):
@@ -336,12 +364,9 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
 
     scatter = data_scatter(ds)
     ok = [s for s in starts if s["status"] == "ok" and s["metrics"]["branch_rms"] is not None]
-    best_rms = min((s["metrics"]["branch_rms"] for s in ok if s["metrics"]["missed"] == 0),
-                   default=np.inf)
-    for s in starts:
-        s["adequate"] = (s["status"] == "ok"
-                         and _is_adequate(s["metrics"], best_rms, mech_m, opts,
-                                          scatter))
+    for s, a in zip(starts, judge_starts([s["metrics"] if s["status"] == "ok" else None
+                                          for s in starts], mech_m, opts, scatter)):
+        s["adequate"] = a
     best = None
     if ok:
         best = min(ok, key=lambda s: (not s["adequate"], s["metrics"]["missed"],

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._continuation import Branch, orbit_at
+from ._continuation import Branch, orbit_at, same_fold
 from ._data import OrbitDataset
 from ._flow import K_HARMONICS, harmonics
 
@@ -174,8 +174,18 @@ def locations(diagram: dict) -> dict:
         b = diagram["flutter"]
         hopf = b.hopf["param"] if b.hopf else None
         folds = sorted(f["param"] for f in b.folds)
-        others = sorted(f["param"] for k, bb in diagram.items() if k != "flutter"
-                        for f in bb.folds)
+        # an isola traced from a measured orbit can be a stretch of a branch already traced
+        # (the two met only beyond the point the tracing started from): its folds are
+        # those already counted
+        seen, others = list(b.folds), []
+        for k, bb in diagram.items():
+            if k == "flutter":
+                continue
+            for f in bb.folds:
+                if not any(same_fold(f, g) for g in seen):
+                    seen.append(f)
+                    others.append(f["param"])
+        others.sort()
         return {"hopf": hopf, "fold": folds[0] if folds else None, "folds": folds,
                 "isolas": len(diagram) - 1, "isola_folds": others}
     return {"hopf": None, "fold": None,

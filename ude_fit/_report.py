@@ -83,9 +83,10 @@ def render(metrics: dict, figures: dict) -> str:
           f"{st['adequate']} of {st['requested']} starts adequate ({st['completed']} completed, "
           f"{len(st['dropped'])} dropped). A start is adequate when it misses no measured point "
           "(an orbit with the measured stability at every measured parameter), its branch RMS "
-          f"error is below the mechanistic model's, and within {st['criterion']['factor_of_best']}"
-          f" times the best start's (or under {_pct(st['criterion']['floor'])}, or under the "
-          f"data's own scatter about smooth branches, {_pct(st['criterion']['data_scatter'])}).",
+          f"error is below the mechanistic model's, and within "
+          f"{st['criterion']['factor_of_best']} times that of the best start passing the "
+          f"other checks (or under {_pct(st['criterion']['floor'])}, or under the data's own "
+          f"scatter about smooth branches, {_pct(st['criterion']['data_scatter'])}).",
           "",
           "A start must also be qualitatively the mechanistic model's diagram: at most one "
           "fold more per branch family (one family for the aerofoil, one per frequency for "

@@ -64,6 +64,7 @@ class TrainConfig:
     smooth_weight: float | None = None
     param_scale: float = 1.0     # the parameter input is standardised by this times its spread
     rest_weight: float = 0.0     # aerofoil: the equilibrium stable where the data says so
+    energy_weight: float = 0.0   # aerofoil: net work per cycle / A^2 concave in A^2
     # how the NN correction depends on the parameter: "input" (a network input like the
     # states) or "polynomial" (a polynomial of param_degree in it, state-dependent
     # coefficients; PolynomialParamCorrection)
@@ -145,6 +146,14 @@ class Regularity(eqx.Module):
     ys_V: jax.Array       # (k,) the airspeed of each state in ys
     rest_stable: jax.Array  # (m,) 1.0 where V holds a stable equilibrium by the data
     omega: jax.Array      # () the measured orbits' mean angular frequency
+    # for the energy-shape penalty only:
+    shapes: jax.Array | None = None     # (n_orbits, n, n_state) orbits at unit heave amplitude
+    shape_V: jax.Array | None = None    # (n_orbits,) their airspeeds
+    shape_dt: jax.Array | None = None   # (n_orbits,) time between their samples (s)
+    energy_amps: jax.Array | None = None  # (j,) heave amplitudes (m), 1 % to 130 % of the largest
+    # for the rest-stability penalty: 1.0 where V is beyond the Hopf point the unstable
+    # orbits extrapolate to (their amplitude^2 linear in V, shrinking to zero)
+    rest_unstable: jax.Array | None = None
 
 
 def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> Regularity:
@@ -159,11 +168,39 @@ def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> 
     # basin): the equilibrium is stable up to the highest airspeed of one
     lab = np.asarray(data.label)
     v_stable = P[lab < 0].max() if np.any(lab < 0) else -np.inf
+    # first-harmonic heave amplitude of each orbit, to scale its shape to unit amplitude
+    h = ys[:, :, 0]
+    ph = 2 * np.pi * np.arange(ys.shape[1]) / ys.shape[1]
+    amp = 2 * np.abs(np.mean(h * np.exp(-1j * ph), axis=1))
+    # finer near zero, where a hook in the branch from the Hopf point lives
+    a_grid = np.concatenate([[0.01, 0.03, 0.06, 0.1], np.linspace(0.15, 1.3, 14)]) * amp.max()
+    v_hopf = _hopf_from_unstable(P, amp, lab)
+    # 16 samples per shape: the cycle mean of q' (7 harmonics) times the force is exact
+    # while the force has nothing above the 9th harmonic
+    every = max(1, ys.shape[1] // 16)
     return Regularity(jnp.asarray(V), jnp.asarray(ys[:, ::step].reshape(-1, ys.shape[-1])),
                       jnp.asarray(data.y_scale), jnp.asarray(span),
                       jnp.asarray(np.repeat(P, len(range(0, ys.shape[1], step)))),
                       jnp.asarray((V <= v_stable).astype(float)),
-                      jnp.asarray(float(np.mean(2 * np.pi / np.asarray(data.period)))))
+                      jnp.asarray(float(np.mean(2 * np.pi / np.asarray(data.period)))),
+                      jnp.asarray(ys[:, ::every] / amp[:, None, None]), jnp.asarray(P),
+                      jnp.asarray(np.asarray(data.period) / ys[:, ::every].shape[1]),
+                      jnp.asarray(a_grid),
+                      jnp.asarray((V >= v_hopf + 0.1 * span).astype(float)))
+
+
+def _hopf_from_unstable(P, amp, lab) -> float:
+    """Where the unstable orbits' amplitude^2, linear in V near a Hopf point, reaches zero
+    (a line through the smaller half of them, as ``_metrics.estimate_from_data``); +inf
+    where the data cannot say (fewer than two unstable orbits, or no shrinking trend)."""
+    idx = np.nonzero(lab < 0)[0]
+    if idx.size < 2:
+        return np.inf
+    idx = idx[np.argsort(amp[idx])][:max(2, idx.size // 2 + 1)]
+    if np.ptp(P[idx]) == 0:
+        return np.inf
+    c = np.polyfit(P[idx], amp[idx] ** 2, 1)
+    return float(-c[1] / c[0]) if c[0] < 0 else np.inf
 
 
 def _equilibrium_penalty(model: UDE, reg: Regularity):
@@ -210,24 +247,80 @@ def _smoothness_penalty(model: UDE, reg: Regularity):
 def _rest_penalty(model: UDE, reg: Regularity, margin: float = 1e-3):
     """Squared hinge on the equilibrium's largest growth rate (over the orbits' angular
     frequency) at the airspeeds where the data says the equilibrium is stable: a correction
-    otherwise free there can move the Hopf point far below the measured orbits."""
+    otherwise free there can move the Hopf point far below the measured orbits. Where the
+    data points to a Hopf point, the same hinge the other way beyond it."""
     y0 = jnp.zeros(model.n_state)
 
-    def one(V):
+    def growth(V):
         d = Drive.of(V)
         J = jax.jacfwd(lambda y: model.vector_field(0.0, y, d))(y0)
-        return jax.nn.relu(jnp.max(jnp.real(jnp.linalg.eigvals(J))) / reg.omega + margin) ** 2
+        return jnp.max(jnp.real(jnp.linalg.eigvals(J))) / reg.omega
 
-    r = jax.vmap(one)(reg.V)
-    return jnp.sum(r * reg.rest_stable) / jnp.maximum(1.0, jnp.sum(reg.rest_stable))
+    g = jax.vmap(growth)(reg.V)
+    r = jax.nn.relu(g + margin) ** 2
+    out = jnp.sum(r * reg.rest_stable) / jnp.maximum(1.0, jnp.sum(reg.rest_stable))
+    if reg.rest_unstable is None:
+        return out
+    # and beyond the Hopf point the shrinking unstable orbits point to, an unstable one: a
+    # correction free there can keep the equilibrium stable past it and turn the unstable
+    # branch back before it reaches zero amplitude
+    u = jax.nn.relu(margin - g) ** 2
+    return out + jnp.sum(u * reg.rest_unstable) / jnp.maximum(1.0, jnp.sum(reg.rest_unstable))
+
+
+def _energy_shape_penalty(model: UDE, reg: Regularity):
+    """Against diagrams that snake in amplitude: the correction's net work per cycle along
+    each measured orbit's shape scaled to heave amplitude A, over A^2, must be concave in
+    A^2 (squared hinge on its second derivative in A^2 over an amplitude grid, in units of
+    the mechanistic model's aerodynamic work on the same shapes).
+
+    Why: with D(A^2; V) the net work per cycle over A^2 (the describing-function energy
+    balance), orbits sit at the roots of D. The mechanistic model's damping and aerodynamic
+    forces make D constant in A^2 and its stiffness does no net work, so the correction
+    decides the shape. A D concave in A^2 has at most two roots at each airspeed, an
+    unstable orbit and a stable one around it: the subcritical picture with one fold. A
+    network that bends D up and down between the measured amplitudes puts orbits at every
+    bend, which is what makes a diagram snake and isolas appear."""
+    n = model.mech.n_dof
+
+    def work(y_unit, V, dt):                  # D at every amplitude of the grid
+        d = Drive.of(V)
+
+        def at(a):
+            U = jax.vmap(lambda y: model.correction_force(a * y, d))(y_unit)
+            return jnp.sum(U * y_unit[:, n:2 * n]) * dt / a
+        return jax.vmap(at)(reg.energy_amps)
+
+    def aero(y_unit, V, dt):                  # the mechanistic aerodynamic work, the scale
+        B = getattr(model.mech, "base", model.mech).aero_damping(V)
+        qd = y_unit[:, n:2 * n]
+        return jnp.abs(jnp.sum((qd @ B.T) * qd) * dt)
+
+    # every measured shape at its own airspeed and across the traced range, where nothing
+    # measured holds the correction (isolas grow there)
+    Vs = jnp.concatenate([reg.shape_V[:, None],
+                          jnp.broadcast_to(reg.V[::4], (reg.shape_V.size, reg.V[::4].size))],
+                         axis=1)                                    # (orbits, 1 + m/4)
+    D = jax.vmap(lambda y, V, dt: jax.vmap(lambda v: work(y, v, dt))(V))(
+        reg.shapes, Vs, reg.shape_dt).reshape(-1, reg.energy_amps.size)
+    S = jax.lax.stop_gradient(jnp.mean(jax.vmap(aero)(reg.shapes, reg.shape_V, reg.shape_dt)))
+    # second divided differences in u = (A / A_top)^2 on the amplitude grid (not uniform in
+    # u, so that the small orbits near the Hopf point are resolved too), times a fixed 1/16^2
+    u = (reg.energy_amps / reg.energy_amps[-1]) ** 2
+    s1 = (D[:, 1:] - D[:, :-1]) / (u[1:] - u[:-1])
+    d2 = 2 * (s1[:, 1:] - s1[:, :-1]) / (u[2:] - u[:-2]) / 256.0 / S
+    return jnp.mean(jax.nn.relu(d2) ** 2)
 
 
 def _regularity(model: UDE, reg: Regularity | None, rw):
     w_lin, w_smooth = rw[:2]
     w_rest = rw[2] if len(rw) > 2 else 0.0
+    w_energy = rw[3] if len(rw) > 3 else 0.0
     if reg is None:
         return 0.0
     out = 0.0
+    if w_energy:
+        out = out + w_energy * _energy_shape_penalty(model, reg)
     if w_rest:
         out = out + w_rest * _rest_penalty(model, reg)
     if w_lin:
@@ -307,7 +400,7 @@ def _periodic_loss(params, static, mech, data: TrainingData, sub: int, weights, 
     model = UDE(mech, eqx.combine(params["corr"], static))
     loss = _periodic_objective(model, params, data, sub, weights[:3])
     return (loss + weights[3] * _weight_penalty(params["corr"])
-            + _regularity(model, reg, weights[4:7]))
+            + _regularity(model, reg, weights[4:8]))
 
 
 def _mech_leaves(mech):
@@ -452,7 +545,7 @@ def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training
     info = {"training": training}
     Z, R = residual_forces(UDE(mech), data)
     params = {"corr": trainable}
-    rw = (cfg.linear_weight, cfg.smooth_weight, cfg.rest_weight)
+    rw = (cfg.linear_weight, cfg.smooth_weight, cfg.rest_weight, cfg.energy_weight)
     reg = regularity_points(data) if model.system == "flutter" and any(rw) else None
     params, v = minimize(_equation_loss, params,
                          (static, mech, jnp.asarray(Z), jnp.asarray(R), reg, rw),

@@ -123,6 +123,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "equilibrium at the airspeeds where the data shows it stable (up to the "
                    "highest unstable orbit's), so the correction cannot move the Hopf point "
                    "below the measured orbits (default 0)")
+    f.add_argument("--energy-shape", type=_nonnegative_float("--energy-shape"),
+                   default=0.0, metavar="W", help="aerofoil: penalty on a correction whose net "
+                   "work per cycle over amplitude squared is not concave in amplitude squared "
+                   "(along the measured orbits' shapes): at most one unstable and one stable "
+                   "orbit per airspeed, against diagrams that snake in amplitude (default 0)")
     f.add_argument("--param-scale", type=_positive_float("--param-scale"), default=1.0,
                    metavar="F", help="the network's parameter input is standardised by F times "
                    "its spread in the data; larger F, slower variation with it (default 1)")
@@ -261,12 +266,14 @@ def cmd_fit(args, argv) -> int:
     if reference and args.system != "flutter":
         raise UsageError("--reference-hopf/--reference-fold apply to --system flutter only")
     if args.system != "flutter" and (args.equilibrium_penalty or args.smoothness_penalty
-                                     or args.rest_stability):
-        raise UsageError("--equilibrium-penalty/--smoothness-penalty/--rest-stability apply "
-                         "to --system flutter only")
-    if args.approximator != "nn" and (args.equilibrium_penalty or args.smoothness_penalty
-                                      or args.rest_stability or args.param_scale != 1.0):
+                                     or args.rest_stability or args.energy_shape):
         raise UsageError("--equilibrium-penalty/--smoothness-penalty/--rest-stability/"
+                         "--energy-shape apply to --system flutter only")
+    if args.approximator != "nn" and (args.equilibrium_penalty or args.smoothness_penalty
+                                      or args.rest_stability or args.energy_shape
+                                      or args.param_scale != 1.0):
+        raise UsageError("--equilibrium-penalty/--smoothness-penalty/--rest-stability/"
+                         "--energy-shape/"
                          "--param-scale apply to --approximator nn only")
     if args.approximator != "nn" and args.param_dependence != "input":
         raise UsageError("--param-dependence polynomial applies to --approximator nn only")
@@ -279,6 +286,7 @@ def cmd_fit(args, argv) -> int:
                                         smooth_weight=args.smoothness_penalty,
                                         param_scale=args.param_scale,
                                         rest_weight=args.rest_stability,
+                                        energy_weight=args.energy_shape,
                                         param_dependence=args.param_dependence,
                                         param_degree=args.param_degree))
     progress = _Progress(args.quiet)
