@@ -122,7 +122,8 @@ def build_parser() -> argparse.ArgumentParser:
                    default=0.0, metavar="W", help="aerofoil: penalty on any growth rate of the "
                    "equilibrium at the airspeeds where the data shows it stable (up to the "
                    "highest unstable orbit's), so the correction cannot move the Hopf point "
-                   "below the measured orbits (default 0)")
+                   "below the measured orbits, and on any decay rate beyond the Hopf point "
+                   "the shrinking unstable orbits point to (default 0)")
     f.add_argument("--energy-shape", type=_nonnegative_float("--energy-shape"),
                    default=0.0, metavar="W", help="aerofoil: penalty on a correction whose net "
                    "work per cycle over amplitude squared is not concave in amplitude squared "
