@@ -230,6 +230,17 @@ def test_rest_stability_penalty_sees_only_an_equilibrium_unstable_where_labelled
     assert float(_rest_penalty(model, beyond(25.0))) == 0.0
     assert float(_rest_penalty(model, beyond(20.0))) > 0.0
 
+    # a correction with a moment at rest moves the equilibrium to a pitch angle where the
+    # hardening/softening spring is softer: its Hopf point falls to 16.7 m/s, and the
+    # penalty must see that (it linearises at the moved equilibrium, not at y = 0)
+    class Offset(eqx.Module):
+        def __call__(self, z):
+            return jnp.stack([0.0 * z[4], -0.6 + 0.0 * z[4]])
+
+    moved = UDE(flutter_qs(), Offset())
+    assert hopf_point(moved, (5.0, 40.0))["param"] == pytest.approx(16.7, abs=0.1)
+    assert float(_rest_penalty(moved, reg(23.0))) > 0.0
+
 
 def test_hopf_from_unstable_orbits_is_where_their_amplitude_squared_reaches_zero():
     from ude_fit._train import _hopf_from_unstable

@@ -252,7 +252,13 @@ def _rest_penalty(model: UDE, reg: Regularity, margin: float = 1e-3):
 
     def growth(V):
         d = Drive.of(V)
-        J = jax.jacfwd(lambda y: model.vector_field(0.0, y, d))(y0)
+        f = lambda y: model.vector_field(0.0, y, d)
+        # at the equilibrium itself: a correction with a force at rest moves it off y = 0,
+        # and the Hopf point is that of the moved equilibrium (Newton from y = 0)
+        y = y0
+        for _ in range(3):
+            y = y - jnp.linalg.solve(jax.jacfwd(f)(y), f(y))
+        J = jax.jacfwd(f)(y)
         return jnp.max(jnp.real(jnp.linalg.eigvals(J))) / reg.omega
 
     g = jax.vmap(growth)(reg.V)
