@@ -8,9 +8,9 @@ Adequacy (the paper found single trainings often land in poor local minima): a s
 stability (nothing missed), its branch RMS error is below the mechanistic model's, and
 it is within ``adequacy_factor`` times the error of the best start that passes the
 other checks, or under ``adequacy_floor``, or under the data's own scatter about smooth
-branches (:func:`data_scatter`), whichever is largest. The kept start is the adequate one with the
-smallest branch error; if none is adequate, the one with the fewest missed points and
-then the smallest error, and the result says so.
+branches (:func:`data_scatter`), whichever is largest. The kept start is the adequate one
+with the smallest branch error; if none is adequate, the one with the fewest missed points
+and then the smallest error, and the result says so.
 """
 
 from __future__ import annotations

@@ -207,12 +207,9 @@ def estimate_from_data(ds: OrbitDataset) -> dict:
     known = ds.known_stability()
     out = {"hopf": None, "fold": None}
     unst = np.nonzero(known & ~np.array([bool(o.stable) for o in ds.orbits]))[0]
-    if unst.size >= 2:
-        idx = unst[np.argsort(A[unst])][:max(2, unst.size // 2 + 1)]
-        if np.ptp(V[idx]) > 0:
-            c = np.polyfit(V[idx], A[idx] ** 2, 1)
-            if c[0] != 0:
-                out["hopf"] = float(-c[1] / c[0])
+    c = unstable_amplitude_line(V[unst], A[unst])
+    if c is not None and c[0] != 0:
+        out["hopf"] = float(-c[1] / c[0])
     order = np.argsort(V)[:min(5, len(V))]
     if np.ptp(A[order]) > 0 and len(order) >= 3:
         c = np.polyfit(A[order], V[order], 2)
@@ -221,6 +218,19 @@ def estimate_from_data(ds: OrbitDataset) -> dict:
             if A[order].min() <= a_star <= A[order].max():
                 out["fold"] = float(np.polyval(c, a_star))
     return out
+
+
+def unstable_amplitude_line(V, A):
+    """(slope, intercept) of a straight line through (V, A^2) of the smaller half of the
+    given unstable orbits (near a Hopf point A^2 is linear in V); None for fewer than two
+    orbits or all at one airspeed."""
+    V, A = np.asarray(V, float), np.asarray(A, float)
+    if V.size < 2:
+        return None
+    idx = np.argsort(A)[:max(2, V.size // 2 + 1)]
+    if np.ptp(V[idx]) == 0:
+        return None
+    return np.polyfit(V[idx], A[idx] ** 2, 1)
 
 
 def with_reference(loc: dict, reference: dict, source: str) -> dict:

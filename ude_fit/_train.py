@@ -32,8 +32,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._flow import diffrax_samples, rk4_orbit
+from ._flow import diffrax_samples, harmonics, rk4_orbit
 from ._identify import TrainingData, residual_forces
+from ._metrics import unstable_amplitude_line
 from ._models import UDE, Drive, MLPCorrection, PolynomialParamCorrection, feature_scaling
 
 
@@ -169,9 +170,8 @@ def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> 
     lab = np.asarray(data.label)
     v_stable = P[lab < 0].max() if np.any(lab < 0) else -np.inf
     # first-harmonic heave amplitude of each orbit, to scale its shape to unit amplitude
-    h = ys[:, :, 0]
-    ph = 2 * np.pi * np.arange(ys.shape[1]) / ys.shape[1]
-    amp = 2 * np.abs(np.mean(h * np.exp(-1j * ph), axis=1))
+    c = harmonics(ys[:, :, 0].T, 1)
+    amp = np.hypot(c[1], c[2])
     a_grid = np.linspace(0.04, 1.3, 16) * amp.max()
     v_hopf = _hopf_from_unstable(P, amp, lab)
     # 16 samples per shape: the cycle mean of q' (7 harmonics) times the force is exact
@@ -190,16 +190,10 @@ def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> 
 
 def _hopf_from_unstable(P, amp, lab) -> float:
     """Where the unstable orbits' amplitude^2, linear in V near a Hopf point, reaches zero
-    (a line through the smaller half of them, as ``_metrics.estimate_from_data``); +inf
-    where the data cannot say (fewer than two unstable orbits, or no shrinking trend)."""
-    idx = np.nonzero(lab < 0)[0]
-    if idx.size < 2:
-        return np.inf
-    idx = idx[np.argsort(amp[idx])][:max(2, idx.size // 2 + 1)]
-    if np.ptp(P[idx]) == 0:
-        return np.inf
-    c = np.polyfit(P[idx], amp[idx] ** 2, 1)
-    return float(-c[1] / c[0]) if c[0] < 0 else np.inf
+    (as ``_metrics.estimate_from_data``); +inf where the data cannot say (fewer than two
+    unstable orbits, or no shrinking trend)."""
+    c = unstable_amplitude_line(P[lab < 0], amp[lab < 0])
+    return float(-c[1] / c[0]) if c is not None and c[0] < 0 else np.inf
 
 
 def _equilibrium_penalty(model: UDE, reg: Regularity):
