@@ -77,6 +77,7 @@ def cmd_pipeline(args, argv) -> int:
         weight_decay=0.0, equilibrium_penalty=args.equilibrium_penalty,
         smoothness_penalty=args.smoothness_penalty, param_scale=args.param_scale,
         param_dependence="input", param_degree=2, rest_stability=0.0, energy_shape=0.0,
+        energy_rising=0.0,
         reference_hopf=args.reference_hopf, reference_fold=args.reference_fold,
         out=os.path.join(out, "fit"), quiet=args.quiet)
     extra = [f"--{k.replace('_', '-')}={getattr(args, k)}"

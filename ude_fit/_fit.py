@@ -210,10 +210,16 @@ def fold_count(m: dict) -> int:
     return n + len(m.get("isola_folds") or [])
 
 
-def _credible(m, mech_m) -> bool:
+def _credible(m, mech_m, fold_required: bool = False) -> bool:
     """Every check of adequacy but the comparison with the other starts: nothing missed,
-    no more folds than allowed, below the mechanistic model's error (at every frequency)."""
+    no more folds than allowed (and one at least where the data needs one), below the
+    mechanistic model's error (at every frequency)."""
     if m is None or m["branch_rms"] is None or m["missed"] > 0:
+        return False
+    # stable and unstable orbits of a self-excited system meet at a fold; a diagram whose
+    # stable and unstable branches run side by side out of the window without one claims
+    # bistability at every lower airspeed
+    if fold_required and fold_count(m) == 0:
         return False
     # qualitatively the mechanistic model's diagram: at most one extra fold per branch
     # family (a network that snakes through the points is not a model of them)
@@ -231,23 +237,31 @@ def _credible(m, mech_m) -> bool:
     return True
 
 
-def _is_adequate(m, best_rms, mech_m, opts, scatter: float = 0.0) -> bool:
+def _is_adequate(m, best_rms, mech_m, opts, scatter: float = 0.0,
+                 fold_required: bool = False) -> bool:
     """Credible, and within ``adequacy_factor`` of the best credible start's error (or
     under the floor, or under the data's own scatter)."""
-    return _credible(m, mech_m) and m["branch_rms"] <= max(
+    return _credible(m, mech_m, fold_required) and m["branch_rms"] <= max(
         opts.adequacy_factor * best_rms, opts.adequacy_floor, scatter)
 
 
 def judge_starts(start_metrics: list, mech_m: dict, opts: FitOptions,
-                 scatter: float = 0.0) -> list[bool]:
+                 scatter: float = 0.0, fold_required: bool = False) -> list[bool]:
     """Adequacy of each start (None for a dropped one). The reference for "within a factor
     of the best" is the best start that is itself credible: one that snakes through every
     point (folds the data does not show) fits closer than a model of the physics should,
     and must not set the bar."""
-    best_rms = min((m["branch_rms"] for m in start_metrics if _credible(m, mech_m)),
-                   default=np.inf)
-    return [m is not None and _is_adequate(m, best_rms, mech_m, opts, scatter)
+    best_rms = min((m["branch_rms"] for m in start_metrics
+                    if _credible(m, mech_m, fold_required)), default=np.inf)
+    return [m is not None and _is_adequate(m, best_rms, mech_m, opts, scatter, fold_required)
             for m in start_metrics]
+
+
+def needs_fold(ds: OrbitDataset) -> bool:
+    """Aerofoil data with stable and unstable orbits: the branch from the Hopf point turns
+    at a fold to become the stable one, so a diagram needs one."""
+    return ds.system == "flutter" and any(o.stable is True for o in ds) and any(
+        o.stable is False for o in ds)
 
 
 def _train_start(mech_model, data: TrainingData, opts: FitOptions, k: int, key, progress):
@@ -363,9 +377,11 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
         starts.append(rec)
 
     scatter = data_scatter(ds)
+    fold_needed = needs_fold(ds)
     ok = [s for s in starts if s["status"] == "ok" and s["metrics"]["branch_rms"] is not None]
     for s, a in zip(starts, judge_starts([s["metrics"] if s["status"] == "ok" else None
-                                          for s in starts], mech_m, opts, scatter)):
+                                          for s in starts], mech_m, opts, scatter,
+                                         fold_needed)):
         s["adequate"] = a
     best = None
     if ok:
@@ -396,7 +412,8 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                                  "factor_of_best": opts.adequacy_factor,
                                  "floor": opts.adequacy_floor,
                                  "data_scatter": scatter,
-                                 "max_extra_folds_per_family": 1},
+                                 "max_extra_folds_per_family": 1,
+                                 "fold_required": fold_needed},
                    "records": [_public(s) for s in starts]},
         "ranges": ranges,
         "seconds": time.perf_counter() - t_start,

@@ -90,7 +90,10 @@ def render(metrics: dict, figures: dict) -> str:
           "",
           "A start must also be qualitatively the mechanistic model's diagram: at most one "
           "fold more per branch family (one family for the aerofoil, one per frequency for "
-          "the oscillator).", "",
+          "the oscillator)"
+          + ("; and, as the data has stable and unstable orbits, at least one fold (the "
+             "branch from the Hopf point turns there to become the stable one)."
+             if st["criterion"].get("fold_required") else "."), "",
           "| start | status | seconds | branch RMS | max | missed | folds | Hopf | fold | "
           "adequate |",
           "|---|---|---|---|---|---|---|---|---|---|"]

@@ -66,6 +66,7 @@ class TrainConfig:
     param_scale: float = 1.0     # the parameter input is standardised by this times its spread
     rest_weight: float = 0.0     # aerofoil: the equilibrium stable where the data says so
     energy_weight: float = 0.0   # aerofoil: net work per cycle / A^2 concave in A^2
+    rising_weight: float = 0.0   # aerofoil: the whole model's net work per cycle / A^2 rising in V
     # how the NN correction depends on the parameter: "input" (a network input like the
     # states) or "polynomial" (a polynomial of param_degree in it, state-dependent
     # coefficients; PolynomialParamCorrection)
@@ -155,6 +156,9 @@ class Regularity(eqx.Module):
     # for the rest-stability penalty: 1.0 where V is beyond the Hopf point the unstable
     # orbits extrapolate to (their amplitude^2 linear in V, shrinking to zero)
     rest_unstable: jax.Array | None = None
+    # for the energy-rising penalty: airspeeds from half a span below the lowest measured
+    # one to the end of the traced range
+    rising_V: jax.Array | None = None
 
 
 def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> Regularity:
@@ -185,7 +189,9 @@ def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> 
                       jnp.asarray(ys[:, ::every] / amp[:, None, None]), jnp.asarray(P),
                       jnp.asarray(np.asarray(data.period) / ys[:, ::every].shape[1]),
                       jnp.asarray(a_grid),
-                      jnp.asarray((V >= v_hopf + 0.1 * span).astype(float)))
+                      jnp.asarray((V >= v_hopf + 0.1 * span).astype(float)),
+                      jnp.asarray(np.arange(P.min() - 0.5 * span, V[-1] + 1e-9,
+                                           span / 4)))
 
 
 def _hopf_from_unstable(P, amp, lab) -> float:
@@ -267,6 +273,31 @@ def _rest_penalty(model: UDE, reg: Regularity, margin: float = 1e-3):
     return out + jnp.sum(u * reg.rest_unstable) / jnp.maximum(1.0, jnp.sum(reg.rest_unstable))
 
 
+def _work_per_amplitude2(force, y_unit, V, dt, amps, n):
+    """Net work per cycle over A^2 of ``force(y, drive)`` along the unit-amplitude orbit
+    shape ``y_unit`` (samples over one period, ``dt`` apart) scaled to each amplitude A in
+    ``amps``, at airspeed V: the describing-function energy balance."""
+    d = Drive.of(V)
+
+    def at(a):
+        F = jax.vmap(lambda y: force(a * y, d))(y_unit)
+        return jnp.sum(F * y_unit[:, n:2 * n]) * dt / a
+    return jax.vmap(at)(amps)
+
+
+def _aero_work_scale(model: UDE, reg: Regularity):
+    """The mechanistic model's aerodynamic damping work on the measured shapes at unit
+    amplitude (mean magnitude): the unit the energy penalties are measured in."""
+    n = model.mech.n_dof
+    B = getattr(model.mech, "base", model.mech).aero_damping
+
+    def one(y_unit, V, dt):
+        qd = y_unit[:, n:2 * n]
+        return jnp.abs(jnp.sum((qd @ B(V).T) * qd) * dt)
+    return jax.lax.stop_gradient(jnp.mean(jax.vmap(one)(reg.shapes, reg.shape_V,
+                                                         reg.shape_dt)))
+
+
 def _energy_shape_penalty(model: UDE, reg: Regularity):
     """Against diagrams that snake in amplitude: the correction's net work per cycle along
     each measured orbit's shape scaled to heave amplitude A, over A^2, must be concave in
@@ -280,21 +311,8 @@ def _energy_shape_penalty(model: UDE, reg: Regularity):
     unstable orbit and a stable one around it: the subcritical picture with one fold. A
     network that bends D up and down between the measured amplitudes puts orbits at every
     bend, which is what makes a diagram snake and isolas appear."""
-    n = model.mech.n_dof
-
-    def work(y_unit, V, dt):                  # D at every amplitude of the grid
-        d = Drive.of(V)
-
-        def at(a):
-            U = jax.vmap(lambda y: model.correction_force(a * y, d))(y_unit)
-            return jnp.sum(U * y_unit[:, n:2 * n]) * dt / a
-        return jax.vmap(at)(reg.energy_amps)
-
-    def aero(y_unit, V, dt):                  # the mechanistic aerodynamic work, the scale
-        B = getattr(model.mech, "base", model.mech).aero_damping(V)
-        qd = y_unit[:, n:2 * n]
-        return jnp.abs(jnp.sum((qd @ B.T) * qd) * dt)
-
+    work = lambda y, V, dt: _work_per_amplitude2(model.correction_force, y, V, dt,
+                                                 reg.energy_amps, model.mech.n_dof)
     # every measured shape at its own airspeed and across the traced range, where nothing
     # measured holds the correction (isolas grow there)
     Vs = jnp.concatenate([reg.shape_V[:, None],
@@ -302,7 +320,7 @@ def _energy_shape_penalty(model: UDE, reg: Regularity):
                          axis=1)                                    # (orbits, 1 + m/4)
     D = jax.vmap(lambda y, V, dt: jax.vmap(lambda v: work(y, v, dt))(V))(
         reg.shapes, Vs, reg.shape_dt).reshape(-1, reg.energy_amps.size)
-    S = jax.lax.stop_gradient(jnp.mean(jax.vmap(aero)(reg.shapes, reg.shape_V, reg.shape_dt)))
+    S = _aero_work_scale(model, reg)
     # second divided differences in u = (A / A_top)^2 on the amplitude grid (uniform in A,
     # not in u, so the small orbits near the Hopf point are resolved too), times 1/16^2.
     # (A grid reaching down to 1 % made the penalty dwell on the smallest amplitudes and
@@ -313,15 +331,49 @@ def _energy_shape_penalty(model: UDE, reg: Regularity):
     return jnp.mean(jax.nn.relu(d2) ** 2)
 
 
+def _energy_rising_penalty(model: UDE, reg: Regularity, margin: float = 0.025):
+    """Against branches that turn back in airspeed and against isolas: the whole model's
+    net work per cycle over A^2 (mechanistic forces and correction) along each measured
+    shape must grow with the airspeed, at every amplitude of the grid (from 1 % to 130 % of
+    the largest orbit), from half a span below the lowest measured airspeed to the end of
+    the traced range, a quarter span apart. Squared hinge on its rise across the measured
+    airspeeds' spread, which must be at least ``margin`` of the aerodynamic work scale. A
+    refined mechanistic model contributes its base model's forces.
+
+    Why: with D(A^2, V) rising in V, its zero set, where the orbits are, is one curve
+    V = g(A^2): a single branch, which cannot close on itself or turn back at one
+    amplitude. The measured branch says as much: its stable orbits grow and its unstable
+    ones shrink with V, both of which need dD/dV > 0 there. Far below the flutter speed the
+    aerodynamic damping grows with V and D falls (the quasi-steady model's does, on these
+    shapes, below about 18 m/s), so the grid starts half a span below the data."""
+    n = model.mech.n_dof
+    mech = getattr(model.mech, "base", model.mech)
+    total = lambda y, d: mech.force(y[:n], y[n:2 * n], d) + model.correction_force(y, d)
+    Vr = reg.rising_V
+    # down to 1 % of the largest orbit: the hooks a branch makes near its Hopf point
+    amps = jnp.concatenate([jnp.array([0.01, 0.02]) * reg.energy_amps[-1] / 1.3,
+                            reg.energy_amps])
+    D = jax.vmap(lambda y, dt: jax.vmap(
+        lambda v: _work_per_amplitude2(total, y, v, dt, amps, n))(Vr))(
+        reg.shapes, reg.shape_dt)                          # (orbits, airspeeds, amplitudes)
+    # dD/dV over the measured airspeeds' spread, in units of the aerodynamic work
+    rise = jnp.diff(D, axis=1) / jnp.diff(Vr)[None, :, None] * reg.v_span / _aero_work_scale(
+        model, reg)
+    return jnp.mean(jax.nn.relu(margin - rise) ** 2)
+
+
 def _regularity(model: UDE, reg: Regularity | None, rw):
     w_lin, w_smooth = rw[:2]
     w_rest = rw[2] if len(rw) > 2 else 0.0
     w_energy = rw[3] if len(rw) > 3 else 0.0
+    w_rising = rw[4] if len(rw) > 4 else 0.0
     if reg is None:
         return 0.0
     out = 0.0
     if w_energy:
         out = out + w_energy * _energy_shape_penalty(model, reg)
+    if w_rising:
+        out = out + w_rising * _energy_rising_penalty(model, reg)
     if w_rest:
         out = out + w_rest * _rest_penalty(model, reg)
     if w_lin:
@@ -546,7 +598,8 @@ def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training
     info = {"training": training}
     Z, R = residual_forces(UDE(mech), data)
     params = {"corr": trainable}
-    rw = (cfg.linear_weight, cfg.smooth_weight, cfg.rest_weight, cfg.energy_weight)
+    rw = (cfg.linear_weight, cfg.smooth_weight, cfg.rest_weight, cfg.energy_weight,
+          cfg.rising_weight)
     reg = regularity_points(data) if model.system == "flutter" and any(rw) else None
     params, v = minimize(_equation_loss, params,
                          (static, mech, jnp.asarray(Z), jnp.asarray(R), reg, rw),

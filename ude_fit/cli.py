@@ -129,6 +129,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "work per cycle over amplitude squared is not concave in amplitude squared "
                    "(along the measured orbits' shapes): at most one unstable and one stable "
                    "orbit per airspeed, against diagrams that snake in amplitude (default 0)")
+    f.add_argument("--energy-rising", type=_nonnegative_float("--energy-rising"),
+                   default=0.0, metavar="W", help="aerofoil: penalty on a model whose net work "
+                   "per cycle over amplitude squared (mechanistic forces and correction, along "
+                   "the measured orbits' shapes) does not rise with the airspeed, from just "
+                   "below the measured airspeeds up: the orbits then lie on one curve "
+                   "V(amplitude), against branches that turn back and isolas (default 0)")
     f.add_argument("--param-scale", type=_positive_float("--param-scale"), default=1.0,
                    metavar="F", help="the network's parameter input is standardised by F times "
                    "its spread in the data; larger F, slower variation with it (default 1)")
@@ -267,14 +273,15 @@ def cmd_fit(args, argv) -> int:
     if reference and args.system != "flutter":
         raise UsageError("--reference-hopf/--reference-fold apply to --system flutter only")
     if args.system != "flutter" and (args.equilibrium_penalty or args.smoothness_penalty
-                                     or args.rest_stability or args.energy_shape):
+                                     or args.rest_stability or args.energy_shape
+                                     or args.energy_rising):
         raise UsageError("--equilibrium-penalty/--smoothness-penalty/--rest-stability/"
-                         "--energy-shape apply to --system flutter only")
+                         "--energy-shape/--energy-rising apply to --system flutter only")
     if args.approximator != "nn" and (args.equilibrium_penalty or args.smoothness_penalty
                                       or args.rest_stability or args.energy_shape
-                                      or args.param_scale != 1.0):
+                                      or args.energy_rising or args.param_scale != 1.0):
         raise UsageError("--equilibrium-penalty/--smoothness-penalty/--rest-stability/"
-                         "--energy-shape/"
+                         "--energy-shape/--energy-rising/"
                          "--param-scale apply to --approximator nn only")
     if args.approximator != "nn" and args.param_dependence != "input":
         raise UsageError("--param-dependence polynomial applies to --approximator nn only")
@@ -288,6 +295,7 @@ def cmd_fit(args, argv) -> int:
                                         param_scale=args.param_scale,
                                         rest_weight=args.rest_stability,
                                         energy_weight=args.energy_shape,
+                                        rising_weight=args.energy_rising,
                                         param_dependence=args.param_dependence,
                                         param_degree=args.param_degree))
     progress = _Progress(args.quiet)

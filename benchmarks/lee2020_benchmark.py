@@ -1,0 +1,78 @@
+"""Adequate starts on the real wind-tunnel data (lee2020/model2) by seed: prints one JSON object.
+
+For each seed, `ude-fit fit` as a user runs it (2x48 network, 5 starts, the given extra
+options), then per start: branch RMS, missed points, folds, Hopf point, adequate; and per
+seed the count of adequate starts and the wall time. The adequacy count moves with the seed
+more than with most settings, so a setting is judged over several seeds, not one.
+
+    python3 benchmarks/lee2020_benchmark.py [--data DIR] [--seeds 0,1,2] [-- extra fit options]
+
+e.g. the regularised fit the test uses:
+
+    python3 benchmarks/lee2020_benchmark.py -- --energy-shape 3 --rest-stability 30 \\
+        --energy-rising 10000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+
+from ude_fit import cli  # noqa: E402
+
+DEFAULT_DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "lee2020",
+                            "model2")
+
+
+def one_seed(data: str, seed: int, extra: list[str]) -> dict:
+    with tempfile.TemporaryDirectory() as out:
+        t0 = time.perf_counter()
+        rc = cli.main(["fit", data, "--system", "flutter", "--width", "48", "--starts", "5",
+                       "--seed", str(seed), *extra, "--out", out, "--quiet"])
+        wall = time.perf_counter() - t0
+        with open(os.path.join(out, "metrics.json")) as fh:
+            m = json.load(fh)
+    starts = [{"start": r["start"], "adequate": r["adequate"],
+               **({k: r["metrics"][k] for k in ("branch_rms", "missed", "fold_count")}
+                  | {"hopf": (r["metrics"]["hopf"] or {}).get("model")}
+                  if r.get("metrics") else {"status": r["status"]})}
+              for r in m["starts"]["records"]]
+    return {"seed": seed, "exit": rc, "adequate": m["starts"]["adequate"],
+            "kept": m["starts"]["kept"], "ude_branch_rms": (m["ude"] or {}).get("branch_rms"),
+            "mechanistic_branch_rms": m["mechanistic"]["branch_rms"],
+            "wall_s": round(wall, 1), "starts": starts}
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = argv[argv.index("--") + 1:] if "--" in argv else []
+    own = argv[:argv.index("--")] if "--" in argv else argv
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", default=DEFAULT_DATA, help="the lee2020/model2 folder")
+    p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
+    args = p.parse_args(own)
+    if not os.path.isdir(args.data):
+        p.error(f"--data: no such folder: {args.data}")
+    try:
+        seeds = [int(s) for s in args.seeds.split(",")]
+    except ValueError:
+        p.error(f"--seeds: not a comma-separated list of integers: {args.seeds!r}")
+    runs = [one_seed(args.data, s, extra) for s in seeds]
+    counts = sorted(r["adequate"] for r in runs)
+    print(json.dumps({"benchmark": "lee2020_adequacy", "options": extra, "seeds": seeds,
+                      "adequate_per_seed": [r["adequate"] for r in runs],
+                      "adequate_median": counts[len(counts) // 2],
+                      "seeds_with_3_of_5": sum(c >= 3 for c in counts),
+                      "wall_s_median": sorted(r["wall_s"] for r in runs)[len(runs) // 2],
+                      "runs": runs}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
