@@ -136,6 +136,8 @@ def test_empty_folder_is_one_line_error(tmp_path):
     (["--param-dependence", "cubic"], "--param-dependence"),
     (["--param-degree", "0"], "--param-degree"),
     (["--approximator", "gp", "--param-dependence", "polynomial"], "--param-dependence"),
+    (["--energy-rising", "-1"], "--energy-rising"),
+    (["--approximator", "gp", "--energy-rising", "1"], "--energy-rising"),
 ])
 def test_bad_options_name_the_option(flutter_fit, tmp_path, args, word):
     base = ["fit", str(flutter_fit["data"]), "--out", str(tmp_path / "o")]
