@@ -16,6 +16,7 @@ e.g. the regularised fit the test uses:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -33,9 +34,13 @@ DEFAULT_DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "da
 def one_seed(data: str, seed: int, extra: list[str]) -> dict:
     with tempfile.TemporaryDirectory() as out:
         t0 = time.perf_counter()
-        rc = cli.main(["fit", data, "--system", "flutter", "--width", "48", "--starts", "5",
-                       "--seed", str(seed), *extra, "--out", out, "--quiet"])
+        with contextlib.redirect_stdout(sys.stderr):    # stdout carries the JSON alone
+            rc = cli.main(["fit", data, "--system", "flutter", "--width", "48", "--starts", "5",
+                           "--seed", str(seed), *extra, "--out", out, "--quiet"])
         wall = time.perf_counter() - t0
+        if not os.path.exists(os.path.join(out, "metrics.json")):
+            raise SystemExit(f"lee2020_benchmark: ude-fit fit exited {rc} without metrics "
+                             f"(options: {' '.join(extra)})")
         with open(os.path.join(out, "metrics.json")) as fh:
             m = json.load(fh)
     starts = [{"start": r["start"], "adequate": r["adequate"],
