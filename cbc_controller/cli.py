@@ -49,6 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
     pl = sub.add_parser("plot", help="bifurcation diagram of a campaign file (PNG)")
     pl.add_argument("file")
     pl.add_argument("--out", metavar="FILE.png", help="default: next to the campaign file")
+    from .fleet.command import add_fleet_parser
+    add_fleet_parser(sub)
     return p
 
 
@@ -272,6 +274,9 @@ def main(argv=None) -> int:
         return _run(args)
     if args.command == "identify":
         return _identify(args)
+    if args.command == "fleet":
+        from .fleet.command import run_fleet_command
+        return run_fleet_command(args)
     if args.command == "validate":
         from .campaign import CampaignError, load_campaign
         try:
