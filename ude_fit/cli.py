@@ -164,6 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_parsers(sub, (_positive_int, _nonnegative_float))
     from ._cli_pipeline import add_parser as add_pipeline
     add_pipeline(sub, (_positive_int, _finite_float, _nonnegative_float, _positive_float))
+    from .sweep import add_sweep_parser
+    add_sweep_parser(sub)
     return p
 
 
@@ -388,6 +390,9 @@ def main(argv=None) -> int:
             return cmd_fit(args, argv)
         if args.command == "diagram":
             return cmd_diagram(args, argv)
+        if args.command == "sweep":
+            from .sweep import cmd_sweep
+            return cmd_sweep(args)
         from . import _cli_loop, _cli_pipeline
         return {"explain": _cli_loop.cmd_explain, "refine": _cli_loop.cmd_refine,
                 "loop": _cli_loop.cmd_loop,

@@ -75,7 +75,7 @@ class FleetIndex:
         f = self.out / "members" / member.id / CAMPAIGN_FILE
         return f.read_bytes() if self.status(member.id) == "interrupted" and f.exists() else None
 
-    def put(self, member: Member, result: MemberResult) -> None:
+    def put(self, member: Member, result: MemberResult, attempts: list[str] = ()) -> None:
         folder = self.out / "members" / member.id
         if result.file_bytes is not None:
             _write_atomic(folder / CAMPAIGN_FILE, result.file_bytes)
@@ -85,6 +85,7 @@ class FleetIndex:
         self.records[member.id] = {
             **member.record(), "status": status, "error": result.error, **result.summary,
             "truth": result.truth, "wall_s": result.wall_s, "node": result.node,
+            "attempts": list(attempts),
             "file": f"members/{member.id}/{CAMPAIGN_FILE}" if (folder / CAMPAIGN_FILE).exists()
             else None, "finished": datetime.now(timezone.utc).isoformat()}
         self.write()
@@ -143,16 +144,19 @@ def _prepare(member: Member, out: Path) -> None:
         (folder / PLUGIN_FILE).write_bytes(member.plugin_source)
 
 
-def _stop_flag():
-    """A tiny actor on the driver's node that running members poll: Ctrl-C on the driver
-    sets it, and each member interrupts its controller, which closes its file cleanly."""
+def _control():
+    """A tiny actor on the driver's node. Running members poll its stop flag (Ctrl-C on the
+    driver sets it; each member then interrupts its controller, which closes its file
+    cleanly), and note where each attempt started (a retry after a lost node shows as a
+    second attempt)."""
     import ray
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
     @ray.remote(num_cpus=0, max_restarts=-1)
-    class StopFlag:
+    class FleetControl:
         def __init__(self):
             self.stopped = False
+            self.starts: dict[str, list[str]] = {}
 
         def stop(self):
             self.stopped = True
@@ -160,20 +164,27 @@ def _stop_flag():
         def is_set(self):
             return self.stopped
 
+        def started(self, member: str, node: str):
+            self.starts.setdefault(member, []).append(node)
+
+        def attempts(self, member: str):
+            return self.starts.get(member, [])
+
     here = ray.get_runtime_context().get_node_id()
-    return StopFlag.options(scheduling_strategy=NodeAffinitySchedulingStrategy(here, soft=True)
-                            ).remote()
+    return FleetControl.options(
+        scheduling_strategy=NodeAffinitySchedulingStrategy(here, soft=True)).remote()
 
 
-def _member_task(member: Member, resume: bytes | None, flag) -> MemberResult:
+def _member_task(member: Member, resume: bytes | None, control) -> MemberResult:
     import ray
+    node = f"{ray.util.get_node_ip_address()}/{ray.get_runtime_context().get_node_id()[:8]}"
+    control.started.remote(member.id, node)
 
     def stop_requested() -> bool:
         try:
-            return bool(ray.get(flag.is_set.remote(), timeout=5))
-        except Exception:            # the flag unreachable: keep running
+            return bool(ray.get(control.is_set.remote(), timeout=5))
+        except Exception:            # the control actor unreachable: keep running
             return False
-    node = f"{ray.util.get_node_ip_address()}/{ray.get_runtime_context().get_node_id()[:8]}"
     return dataclasses.replace(run_member(member, resume, stop_requested), node=node)
 
 
@@ -218,12 +229,14 @@ def run_fleet(options: FleetOptions, out: str | Path, address: str | None = None
         return _exit_status(index)
     connect(address)
     import ray
-    flag = _stop_flag()
-    task = ray.remote(num_cpus=options.cpus_per_member, max_retries=options.retries)(_member_task)
+    control = _control()
+    # SPREAD: a queued member goes to any free node (the default packs the driver's node first)
+    task = ray.remote(num_cpus=options.cpus_per_member, max_retries=options.retries,
+                      scheduling_strategy="SPREAD")(_member_task)
     pending = {}
     for m in todo:
         _prepare(m, out)
-        pending[task.remote(m, index.resume_bytes(m), flag)] = m
+        pending[task.remote(m, index.resume_bytes(m), control)] = m
     progress = Progress(len(todo), stream)
     interrupted, deadline = False, None
     while pending:
@@ -232,7 +245,7 @@ def run_fleet(options: FleetOptions, out: str | Path, address: str | None = None
             for ref in ready:
                 m = pending.pop(ref)
                 try:
-                    index.put(m, ray.get(ref))
+                    index.put(m, ray.get(ref), _attempts(control, m.id))
                 except ray.exceptions.RayError as exc:
                     index.lost(m, f"{type(exc).__name__}: {str(exc).splitlines()[0]}")
                 progress(index.records[m.id], index.counts())
@@ -242,7 +255,7 @@ def run_fleet(options: FleetOptions, out: str | Path, address: str | None = None
             if interrupted:
                 break
             interrupted, deadline = True, time.time() + STOP_GRACE_S
-            flag.stop.remote()
+            control.stop.remote()
             stream.write(f"\nfleet: stopping; {len(pending)} running members close their "
                          "files (Ctrl-C again to leave them)\n")
     for ref in pending:
@@ -253,6 +266,14 @@ def run_fleet(options: FleetOptions, out: str | Path, address: str | None = None
                  + ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
                  + f"; index: {out / INDEX_JSON}\n")
     return 130 if interrupted else _exit_status(index)
+
+
+def _attempts(control, member_id: str) -> list[str]:
+    import ray
+    try:
+        return ray.get(control.attempts.remote(member_id), timeout=10)
+    except Exception:
+        return []
 
 
 def _exit_status(index: FleetIndex) -> int:

@@ -1,0 +1,198 @@
+"""The cluster tests' scenario, run once inside a loopback-only network namespace
+(tests/test_cluster.py starts it under ``unshare -n``): a real two-node Ray cluster, a fleet
+whose second node is killed mid-run, its rerun, an interrupted fleet and its rerun, and a fit
+sweep. It writes what it saw to WORK/results.json; the tests judge it.
+
+    unshare -n sh -c 'ip link set lo up && exec python3 tests/cluster_scenario.py WORK'
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from tests.ray_cluster import LocalRayCluster  # noqa: E402
+
+FLUTTER = """[campaign]
+name = "{name}"
+rig = "flutter"
+seed = 1
+[rig]
+lockstep = true
+[loop]
+lockstep_slice_s = 0.2
+[parameter]
+values = {values}
+[cbc]
+kp = 200.0
+kd = 60.0
+navg = 4
+transient_periods = 1
+"""
+
+OSCILLATOR = """[campaign]
+name = "{name}"
+rig = "oscillator"
+seed = 1
+[rig]
+lockstep = true
+[frequencies]
+values = [{freq}]
+[cbc]
+kp = 1.0e4
+kd = 50.0
+"""
+
+BURNT_PLUGIN = '''def force(t, q, qdot, params):
+    raise RuntimeError("shaker coil burnt out")
+'''
+
+FLEET_A = """[fleet]
+name = "lost-node"
+campaigns = ["small.toml", "osc23.toml", "osc22.toml"]
+seeds = [3]
+clock = "lockstep"
+
+[[settings]]
+label = "clean"
+
+[[settings]]
+label = "cubic"            # undeclared physics: a hardening heave spring
+rig = "flutter"
+effects = { heave_cubic = 5e5 }
+
+[[settings]]
+label = "burnt"            # a rig that fails to start
+rig = "flutter"
+plugin = "burnt.py:force"
+"""
+
+FLEET_B = """[fleet]
+name = "interrupted"
+campaigns = ["one.toml", "four.toml"]
+seeds = [5]
+clock = "lockstep"
+"""
+
+SWEEP = """[sweep]
+name = "approximators"
+system = "oscillator"
+datasets = ["truth_osc.h5"]
+seeds = [0, 1]
+
+[[options]]
+label = "gp"
+approximator = "gp"
+starts = 1
+
+[[options]]
+label = "nn4"
+width = 4
+starts = 1
+"""
+
+
+class Driver:
+    """A fleet or sweep command as a process, its stderr collected as it comes."""
+
+    def __init__(self, args: list[str], env: dict):
+        self.proc = subprocess.Popen([sys.executable, "-m", *args], cwd=REPO, env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        self.err = b""
+        self._t = threading.Thread(target=self._pump, daemon=True)
+        self._t.start()
+
+    def _pump(self):
+        while chunk := self.proc.stderr.read1(4096):
+            self.err += chunk
+
+    def wait_for(self, text: str, timeout: float = 400) -> None:
+        t0 = time.time()
+        while text.encode() not in self.err:
+            if self.proc.poll() is not None or time.time() - t0 > timeout:
+                raise RuntimeError(f"no {text!r}: {self.err.decode()[-3000:]}")
+            time.sleep(0.1)
+
+    def finish(self, timeout: float = 600) -> dict:
+        rc = self.proc.wait(timeout=timeout)
+        self._t.join(timeout=5)
+        return {"rc": rc, "stderr": self.err.decode()}
+
+
+def _hashes(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.glob("members/*/campaign.h5"))}
+
+
+def _fleet(cfg: str, out: Path, env: dict) -> Driver:
+    return Driver(["cbc_controller.cli", "fleet", cfg, "--out", str(out)], env)
+
+
+def main(work: Path) -> None:
+    work.mkdir(parents=True, exist_ok=True)
+    (work / "small.toml").write_text(FLUTTER.format(name="small", values="[18.5, 22.3]"))
+    (work / "one.toml").write_text(FLUTTER.format(name="one", values="[20.5]"))
+    (work / "four.toml").write_text(FLUTTER.format(name="four", values="[18.5, 19.5, 20.5, 22.3]"))
+    (work / "osc23.toml").write_text(OSCILLATOR.format(name="osc23", freq=23.0))
+    (work / "osc22.toml").write_text(OSCILLATOR.format(name="osc22", freq=22.5))
+    (work / "burnt.py").write_text(BURNT_PLUGIN)
+    (work / "fleet_a.toml").write_text(FLEET_A)
+    (work / "fleet_b.toml").write_text(FLEET_B)
+    (work / "sweep.toml").write_text(SWEEP)
+    from tests.ude_fixtures import write_truth_campaign
+    write_truth_campaign(work / "truth_osc.h5", "oscillator", per_freq=2)
+
+    res: dict = {}
+    with LocalRayCluster() as cluster:
+        head = cluster.start_head(num_cpus=1)
+        second = cluster.add_node(num_cpus=1)
+        res["nodes"] = {"head": head.node_id, "second": second.node_id}
+        env = {**cluster.env, "RAY_ADDRESS": cluster.address}     # Ray's own convention
+
+        # fleet A: the second node is lost while both nodes run members
+        a = _fleet(str(work / "fleet_a.toml"), work / "A", env)
+        a.wait_for(f"on 127.0.0.1/{second.node_id[:8]}")   # a member done on the second node
+        time.sleep(3.0)                                      # ... and the next one under way
+        second.kill()
+        res["killed_at"] = a.err.decode().count("\n[")
+        third = cluster.add_node(num_cpus=1)
+        res["nodes"]["third"] = third.node_id
+        res["fleet_a"] = a.finish()
+        res["fleet_a_hashes"] = _hashes(work / "A")
+        res["fleet_a_rerun"] = _fleet(str(work / "fleet_a.toml"), work / "A", env).finish()
+        res["fleet_a_rerun_hashes"] = _hashes(work / "A")
+
+        # fleet B: Ctrl-C while its long member runs; the rerun does the rest
+        b = _fleet(str(work / "fleet_b.toml"), work / "B", env)
+        b.wait_for("[1/2]")                  # the short member is done, the long one half-way
+        time.sleep(3.0)
+        b.proc.send_signal(signal.SIGINT)
+        res["fleet_b"] = b.finish()
+        res["fleet_b_index_after_interrupt"] = json.loads((work / "B" / "index.json").read_text())
+        res["fleet_b_hashes"] = _hashes(work / "B")
+        res["fleet_b_rerun"] = _fleet(str(work / "fleet_b.toml"), work / "B", env).finish()
+        res["fleet_b_rerun_hashes"] = _hashes(work / "B")
+
+        # the sweep, told the cluster's address by --address
+        env_no_address = {k: v for k, v in env.items() if k != "RAY_ADDRESS"}
+        t0 = time.time()
+        res["sweep"] = Driver(["ude_fit.cli", "sweep", str(work / "sweep.toml"), "--out",
+                               str(work / "S"), "--address", cluster.address],
+                              env_no_address).finish()
+        res["sweep"]["wall_s"] = time.time() - t0
+    (work / "results.json").write_text(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONPATH", str(REPO))
+    main(Path(sys.argv[1]))
