@@ -24,26 +24,10 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-MEMBER_CAMPAIGN = """[campaign]
-name = "bench"
-rig = "flutter"
-seed = 1
-[rig]
-lockstep = true
-[loop]
-lockstep_slice_s = 0.2
-[parameter]
-values = [20.5]
-[cbc]
-kp = 200.0
-kd = 60.0
-navg = 4
-transient_periods = 1
-"""
-
 
 def _fleet_file(work: Path, name: str, seeds: list[int]) -> Path:
-    (work / "bench.toml").write_text(MEMBER_CAMPAIGN)
+    from tests.cluster_scenario import FLUTTER     # the cluster tests' small campaign
+    (work / "bench.toml").write_text(FLUTTER.format(name="bench", values="[20.5]"))
     f = work / f"{name}.toml"
     f.write_text(f'[fleet]\nname = "{name}"\ncampaigns = ["bench.toml"]\nseeds = {seeds}\n'
                  'clock = "lockstep"\n')
@@ -119,7 +103,7 @@ def _sweep(work: Path, n_fits: int, address: str) -> dict:
 def measure(members: int, fits: int) -> dict:
     from tests.ray_cluster import LocalRayCluster
     out: dict = {"machine_cores": os.cpu_count(), "load_average_at_start": os.getloadavg()[0],
-                 "members_per_fleet": members, "member": "flutter, 1 airspeed (2 points), lockstep"}
+                 "members_per_fleet": members, "member": "flutter, 1 airspeed (2 points), lockstep (tests/cluster_scenario.py FLUTTER)"}
     work = Path(tempfile.mkdtemp(prefix="fleet-bench-"))
     with LocalRayCluster() as cluster:
         os.environ.update(cluster.env)

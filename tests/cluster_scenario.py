@@ -11,6 +11,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -96,8 +97,9 @@ approximator = "gp"
 starts = 1
 
 [[options]]
-label = "nn4"
-width = 4
+label = "gp-periodic"
+approximator = "gp"
+mechanistic = "periodic"
 starts = 1
 """
 
@@ -127,6 +129,44 @@ class Driver:
         rc = self.proc.wait(timeout=timeout)
         self._t.join(timeout=5)
         return {"rc": rc, "stderr": self.err.decode()}
+
+
+def _wait_running(where, fragment: str, for_s: float, timeout: float = 300) -> None:
+    """Until a process matching `fragment` has run on `where` (a node, or any node of a
+    cluster) for `for_s` seconds."""
+    t0, since = time.time(), None
+    while time.time() - t0 < timeout:
+        pids = where.running(fragment)
+        since = (since or time.time()) if pids else None
+        if since and time.time() - since >= for_s:
+            return
+        time.sleep(0.2)
+    raise RuntimeError(f"no {fragment!r} ran")
+
+
+def _wait_points(member_folder: str, n: int, timeout: float = 300) -> None:
+    """Until the campaign file a member is writing in its scratch folder (on this machine:
+    the nodes are local) holds `n` points."""
+    import glob
+    import tempfile
+    from cbc_controller.log import read_campaign
+    pattern = os.path.join(tempfile.gettempdir(), member_folder + "-*", "campaign.h5")
+    t0 = time.time()
+    while time.time() - t0 < timeout:
+        for path in glob.glob(pattern):
+            try:
+                if len(read_campaign(path).points) >= n:
+                    return
+            except Exception:            # mid-commit or not created yet: look again
+                pass
+        time.sleep(0.2)
+    raise RuntimeError(f"{member_folder} logged no {n} points")
+
+
+def _member_of(pid: int) -> str:
+    """The fleet member a controller process runs: its scratch folder is fleet-<id>-XXXXXXXX."""
+    cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+    return re.search(r"/fleet-(.+)-[a-z0-9_]{8}/campaign\.toml", cmd).group(1)
 
 
 def _hashes(folder: Path) -> dict:
@@ -161,8 +201,8 @@ def main(work: Path) -> None:
 
         # fleet A: the second node is lost while both nodes run members
         a = _fleet(str(work / "fleet_a.toml"), work / "A", env)
-        a.wait_for(f"on 127.0.0.1/{second.node_id[:8]}")   # a member done on the second node
-        time.sleep(3.0)                                      # ... and the next one under way
+        _wait_running(second, "cbc_controller.cli run", 4.0)   # a member half-way there
+        res["lost_member"] = _member_of(second.running("cbc_controller.cli run")[0])
         second.kill()
         res["killed_at"] = a.err.decode().count("\n[")
         third = cluster.add_node(num_cpus=1)
@@ -174,8 +214,8 @@ def main(work: Path) -> None:
 
         # fleet B: Ctrl-C while its long member runs; the rerun does the rest
         b = _fleet(str(work / "fleet_b.toml"), work / "B", env)
-        b.wait_for("[1/2]")                  # the short member is done, the long one half-way
-        time.sleep(3.0)
+        b.wait_for("[1/2]")                            # the short member done, and then
+        _wait_points("fleet-four-default-s5", 2)      # Ctrl-C once the long one logged points
         b.proc.send_signal(signal.SIGINT)
         res["fleet_b"] = b.finish()
         res["fleet_b_index_after_interrupt"] = json.loads((work / "B" / "index.json").read_text())

@@ -45,8 +45,13 @@ def namespace_unavailable() -> str | None:
 
 
 class Node:
-    def __init__(self, proc: subprocess.Popen, node_id: str):
-        self.proc, self.node_id = proc, node_id
+    def __init__(self, proc: subprocess.Popen, node_id: str, name: str):
+        self.proc, self.node_id, self.name = proc, node_id, name
+
+    def running(self, fragment: str) -> list[int]:
+        """Pids of this node's processes (its workers' children too) whose command line
+        holds `fragment`: found by the node's name in their environment."""
+        return _pids_with(f"LAB_RAY_NODE={self.name}".encode(), fragment.encode())
 
     def kill(self) -> None:
         """Lose the node: SIGKILL to its whole process group."""
@@ -71,12 +76,14 @@ class LocalRayCluster:
 
     def _start(self, args: list[str], num_cpus: int) -> Node:
         before = set(self.alive()) if self.nodes else set()
+        name = f"node{len(self.nodes)}"
         proc = subprocess.Popen(["ray", "start", *args, "--node-ip-address", "127.0.0.1",
                                  "--num-cpus", str(num_cpus), "--temp-dir", self.temp_dir,
                                  "--disable-usage-stats", "--block"],
-                                env=self.env, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, start_new_session=True)
-        node = Node(proc, "")
+                                env={**self.env, "LAB_RAY_NODE": name},
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                start_new_session=True)
+        node = Node(proc, "", name)
         self.nodes.append(node)
         node.node_id = self._wait_new(before, proc)
         return node
@@ -87,6 +94,10 @@ class LocalRayCluster:
 
     def add_node(self, num_cpus: int = 1) -> Node:
         return self._start(["--address", self.address], num_cpus)
+
+    def running(self, fragment: str) -> list[int]:
+        """Pids of any node's processes whose command line holds `fragment`."""
+        return _pids_with(f"LAB_RAY_CLUSTER={self.temp_dir}".encode(), fragment.encode())
 
     def alive(self) -> list[str]:
         """Node ids of the alive nodes (asked of the cluster by a short-lived driver)."""
@@ -121,20 +132,27 @@ class LocalRayCluster:
         self.stop()
 
 
-def _kill_leftovers(marker: str) -> None:
-    """Processes this cluster started that left their node's process group (Ray starts some
-    workers in sessions of their own): found by the marker in their environment, killed by
-    pid."""
-    needle = f"LAB_RAY_CLUSTER={marker}".encode()
+def _pids_with(env_entry: bytes, fragment: bytes = b"") -> list[int]:
+    out = []
     for pid in os.listdir("/proc"):
         if not pid.isdigit() or int(pid) == os.getpid():
             continue
         try:
             env = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ")
         except OSError:
             continue
-        if needle in env:
-            try:
-                os.kill(int(pid), signal.SIGKILL)
-            except ProcessLookupError:
-                pass
+        if env_entry in env and fragment in cmd:
+            out.append(int(pid))
+    return out
+
+
+def _kill_leftovers(marker: str) -> None:
+    """Processes this cluster started that left their node's process group (Ray starts some
+    workers in sessions of their own): found by the marker in their environment, killed by
+    pid."""
+    for pid in _pids_with(f"LAB_RAY_CLUSTER={marker}".encode()):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass

@@ -297,10 +297,16 @@ def _connect(address: str | None) -> None:
         raise SweepError("Ray is not installed: pip install -e \".[cluster]\"") from None
     if ray.is_initialized():
         return
-    if address or os.environ.get("RAY_ADDRESS"):
-        ray.init(address=address, log_to_driver=False)
-    else:
-        ray.init(include_dashboard=False, log_to_driver=False)
+    where = address or os.environ.get("RAY_ADDRESS")
+    try:
+        if where:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(include_dashboard=False, log_to_driver=False)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise SweepError(f"cannot {'join the Ray cluster at ' + where if where else 'start Ray'}"
+                         f": {first}") from None
 
 
 def _fit_task(spec: FitSpec) -> dict:

@@ -19,7 +19,7 @@ def add_fleet_parser(sub) -> None:
 
 
 def run_fleet_command(args) -> int:
-    from .driver import RayMissing, run_fleet
+    from .driver import ClusterError, run_fleet
     from .options import FleetError, load_fleet
     try:
         options = load_fleet(args.fleet)
@@ -28,7 +28,7 @@ def run_fleet_command(args) -> int:
                 print(m.id)
             return 0
         return run_fleet(options, args.out, args.address)
-    except (FleetError, RayMissing) as exc:
+    except (FleetError, ClusterError) as exc:
         print(f"cbc-campaign: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -28,8 +28,9 @@ DONE = ("completed", "failed")          # a rerun leaves these alone
 STOP_GRACE_S = 120.0                    # Ctrl-C: how long running members get to close files
 
 
-class RayMissing(RuntimeError):
-    """Ray is not installed (it is the optional extra ``cluster``)."""
+class ClusterError(RuntimeError):
+    """Ray is not installed (the optional extra ``cluster``), or its cluster cannot be
+    joined (one line)."""
 
 
 def connect(address: str | None) -> None:
@@ -38,13 +39,19 @@ def connect(address: str | None) -> None:
     try:
         import ray
     except ImportError:
-        raise RayMissing("Ray is not installed: pip install -e \".[cluster]\"") from None
+        raise ClusterError("Ray is not installed: pip install -e \".[cluster]\"") from None
     if ray.is_initialized():
         return
-    if address or os.environ.get("RAY_ADDRESS"):
-        ray.init(address=address, log_to_driver=False)
-    else:
-        ray.init(include_dashboard=False, log_to_driver=False)
+    where = address or os.environ.get("RAY_ADDRESS")
+    try:
+        if where:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(include_dashboard=False, log_to_driver=False)
+    except (ConnectionError, RuntimeError, ValueError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ClusterError(f"cannot {'join the Ray cluster at ' + where if where else 'start Ray'}"
+                           f": {first}") from None
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
@@ -75,7 +82,7 @@ class FleetIndex:
         f = self.out / "members" / member.id / CAMPAIGN_FILE
         return f.read_bytes() if self.status(member.id) == "interrupted" and f.exists() else None
 
-    def put(self, member: Member, result: MemberResult, attempts: list[str] = ()) -> None:
+    def put(self, member: Member, result: MemberResult) -> None:
         folder = self.out / "members" / member.id
         if result.file_bytes is not None:
             _write_atomic(folder / CAMPAIGN_FILE, result.file_bytes)
@@ -85,7 +92,6 @@ class FleetIndex:
         self.records[member.id] = {
             **member.record(), "status": status, "error": result.error, **result.summary,
             "truth": result.truth, "wall_s": result.wall_s, "node": result.node,
-            "attempts": list(attempts),
             "file": f"members/{member.id}/{CAMPAIGN_FILE}" if (folder / CAMPAIGN_FILE).exists()
             else None, "finished": datetime.now(timezone.utc).isoformat()}
         self.write()
@@ -145,10 +151,9 @@ def _prepare(member: Member, out: Path) -> None:
 
 
 def _control():
-    """A tiny actor on the driver's node. Running members poll its stop flag (Ctrl-C on the
-    driver sets it; each member then interrupts its controller, which closes its file
-    cleanly), and note where each attempt started (a retry after a lost node shows as a
-    second attempt)."""
+    """A tiny actor on the driver's node whose stop flag running members poll: Ctrl-C on the
+    driver sets it, and each member then interrupts its controller, which closes its file
+    cleanly."""
     import ray
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
@@ -156,19 +161,12 @@ def _control():
     class FleetControl:
         def __init__(self):
             self.stopped = False
-            self.starts: dict[str, list[str]] = {}
 
         def stop(self):
             self.stopped = True
 
         def is_set(self):
             return self.stopped
-
-        def started(self, member: str, node: str):
-            self.starts.setdefault(member, []).append(node)
-
-        def attempts(self, member: str):
-            return self.starts.get(member, [])
 
     here = ray.get_runtime_context().get_node_id()
     return FleetControl.options(
@@ -178,7 +176,6 @@ def _control():
 def _member_task(member: Member, resume: bytes | None, control) -> MemberResult:
     import ray
     node = f"{ray.util.get_node_ip_address()}/{ray.get_runtime_context().get_node_id()[:8]}"
-    control.started.remote(member.id, node)
 
     def stop_requested() -> bool:
         try:
@@ -243,11 +240,12 @@ def run_fleet(options: FleetOptions, out: str | Path, address: str | None = None
         try:
             ready, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
             for ref in ready:
-                m = pending.pop(ref)
+                m = pending[ref]             # dropped once written: a Ctrl-C here loses nothing
                 try:
-                    index.put(m, ray.get(ref), _attempts(control, m.id))
+                    index.put(m, ray.get(ref))
                 except ray.exceptions.RayError as exc:
                     index.lost(m, f"{type(exc).__name__}: {str(exc).splitlines()[0]}")
+                del pending[ref]
                 progress(index.records[m.id], index.counts())
             if deadline is not None and time.time() > deadline:
                 break
@@ -266,14 +264,6 @@ def run_fleet(options: FleetOptions, out: str | Path, address: str | None = None
                  + ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
                  + f"; index: {out / INDEX_JSON}\n")
     return 130 if interrupted else _exit_status(index)
-
-
-def _attempts(control, member_id: str) -> list[str]:
-    import ray
-    try:
-        return ray.get(control.attempts.remote(member_id), timeout=10)
-    except Exception:
-        return []
 
 
 def _exit_status(index: FleetIndex) -> int:

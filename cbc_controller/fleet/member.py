@@ -40,8 +40,12 @@ class MemberResult:
     file_bytes: bytes | None = field(default=None, repr=False)
 
 
-def _die_with_parent() -> None:
-    """Linux: the controller gets SIGTERM when the worker running it dies (a lost node)."""
+def _controller_setup() -> None:
+    """In the controller, before it starts: Ctrl-C works again (a Ray worker may ignore or
+    block SIGINT, and both survive exec), and on Linux it gets SIGTERM when the worker running
+    it dies (a lost node)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
     except OSError:
@@ -94,7 +98,7 @@ def run_member(member: Member, resume: bytes | None = None,
                "--quiet"]
         t0 = time.monotonic()
         proc = subprocess.Popen(cmd, cwd=work, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                text=True, preexec_fn=_die_with_parent)
+                                text=True, preexec_fn=_controller_setup)
         stopped = False
         while True:
             try:
