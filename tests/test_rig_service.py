@@ -219,6 +219,9 @@ def _run_cli(*args, timeout=60):
     (("serve", "--rig", "flutter", "--effect", "freeplay=-1"), ">= 0"),
     (("serve", "--rig", "flutter", "--effect-plugin", "/nonexistent/plug.py:force"), "file not found"),
     (("serve", "--rig", "flutter", "--serial", "/nonexistent/tty"), "does not exist"),
+    (("serve", "--rig", "flutter", "--unit", "0"), "1..247"),
+    (("serve", "--rig", "flutter", "--unit", "248"), "1..247"),
+    (("serve", "--rig", "flutter", "--unit", "one"), "1..247"),
     (("frobnicate",), "invalid choice"),
 ])
 def test_cli_bad_input_is_one_line_and_exit_2(args, needle):
