@@ -44,15 +44,16 @@ REG = M.BY_NAME
 def rig(tmp_path_factory):
     if shutil.which("socat") is None:
         pytest.skip("socat is not installed (.ci/run installs it)")
-    cable = PtyPair(tmp_path_factory.mktemp("pty"))
+    folder = tmp_path_factory.mktemp("conformance")
+    cable = PtyPair(folder)
     proc = RigProcess("--rig", RIG, "--lockstep", "--port", "0", "--serial", cable.b,
-                      "--unit", str(UNIT), "--verbose")
+                      "--unit", str(UNIT), "--verbose", stderr_file=folder / "rig.log")
     proc.line = cable.a
     yield proc
     proc.stop()
     cable.close()
-    tracebacks = proc.proc.stderr.read().count("Traceback")
-    assert tracebacks == 0, f"{tracebacks} tracebacks inside the rig"
+    tracebacks = proc.stderr().count("Traceback")
+    assert tracebacks == 0, f"{tracebacks} tracebacks inside the rig (--verbose log)"
 
 
 # ---- the masters -----------------------------------------------------------------------------

@@ -297,7 +297,7 @@ def as_markdown(compact: bool = True) -> str:
         "f32 = IEEE-754 float over two registers, big-endian word order (ABCD, `mbpoll -B`); "
         "u32 the same word order; str16 = 16 ASCII characters, high byte first.",
         "",
-        "Unit id, broadcasts and exception replies: see protocol.md.",
+        "Unit id, broadcasts and exception replies: see [protocol.md](protocol.md).",
         "",
         "| table | address | name | type | unit | access | range | rigs | description |",
         "|---|---|---|---|---|---|---|---|---|",
