@@ -249,11 +249,14 @@ def test_illegal_value_03_changes_nothing(rig):
 def test_illegal_function_01_carries_the_request_code(rig):
     """Unknown function codes answer 01 with the request's code + 0x80 (0x41 -> C1);
     codes 0x80..0xFF, reserved for replies, answer 01 with their own code (already
-    carrying the exception bit). Over TCP (pyModbusTCP, raw) and RTU (modbus-tk)."""
+    carrying the exception bit). Over TCP (pyModbusTCP, raw) and RTU (modbus-tk,
+    whose exception check also needs the reply's function byte above 0x80)."""
     c = mbtcp(rig)
     for fc in (0x41, 0x64, 0x80, 0xC1, 0xFF):
         assert c.custom_request(bytes([fc, 0, 0])) is None
         assert c.last_except == ILLEGAL_FUNCTION, hex(fc)
+    # a diagnostics (FC8) sub-function the device does not serve
+    assert c.custom_request(bytes.fromhex("08277600")) is None and c.last_except == ILLEGAL_FUNCTION
     c.close()
     with socket.create_connection(("127.0.0.1", rig.port), timeout=2) as s:
         for tid, fc in enumerate([0x80, *range(0x40, 0x100, 7)], 1):
@@ -262,8 +265,10 @@ def test_illegal_function_01_carries_the_request_code(rig):
             s.sendall(struct.pack(">HHHBB", tid, 0, 4, UNIT, fc) + b"\x00\x00")
             assert s.recv(64) == struct.pack(">HHHBBB", tid, 0, 3, UNIT, fc | 0x80, ILLEGAL_FUNCTION), hex(fc)
     with tk_rtu(rig) as m:
-        for fc in (0xC1, 0xFF):            # RTU can delimit these (reply-sized frames)
-            code = tk_code(lambda: m.execute(UNIT, cst.RAW, 0, pdu=struct.pack(">BB", fc, 0), expected_length=5))
+        # 0x80..0xFF are sized as exception frames; an unknown code below 0x80 cannot
+        # be sized, and the device takes the frame as ended when the line falls silent
+        for fc, body in ((0xC1, b"\x00"), (0xFF, b"\x00"), (0x41, b"\x00\x00"), (0x64, b"\x01\x02\x03\x04")):
+            code = tk_code(lambda: m.execute(UNIT, cst.RAW, 0, pdu=bytes([fc]) + body, expected_length=5))
             assert code == ILLEGAL_FUNCTION, hex(fc)
 
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import ModbusIOException
+from pymodbus.framer import FramerRTU
 from pymodbus.pdu import ExceptionResponse
 from pymodbus.pdu.device import ModbusDeviceIdentification
 from pymodbus.pdu.register_message import ReadWriteMultipleRegistersRequest
@@ -94,6 +95,20 @@ def _handler_class(registers: RigRegisters, addressing: Addressing):
                     break
                 buf = buf[cut:]
             self.recv_buffer = b"" if len(buf) > self.max_buffer_size else buf
+            if self._rtu and self.recv_buffer:
+                self.loop.call_later(RTU_FRAME_SILENCE_S, self._line_silent, self._last_rx)
+
+        def _line_silent(self, rx_time: float) -> None:
+            """Silence ends an RTU frame. A frame still held when the line falls silent
+            is one the framer could not size: a function code this device does not
+            know. With a valid CRC it is a request, answered ILLEGAL FUNCTION."""
+            frame = self.recv_buffer
+            if self._last_rx != rx_time or len(frame) < 4:
+                return
+            self.recv_buffer = b""
+            crc = int.from_bytes(frame[-2:], "big")
+            if FramerRTU.check_CRC(frame[:-2], crc) and self.framer.decoder.lookupPduClass(frame) is None:
+                self._answer_unknown(frame[1], frame[0], 0, None)
 
         def callback_data(self, data, addr=None):
             # ServerRequestHandler.callback_data, except that an undecodable frame
@@ -148,13 +163,17 @@ def _handler_class(registers: RigRegisters, addressing: Addressing):
                 # (counts first: those the PDU checks itself, answering 03)
                 probe = registers.read(pdu.function_code, pdu.read_address, pdu.read_count, self)
                 if isinstance(probe, ExcCodes):
-                    self._send_exception(pdu.function_code, probe, pdu.dev_id, pdu.transaction_id, addr)
+                    if answer:
+                        self._send_exception(pdu.function_code, probe, pdu.dev_id, pdu.transaction_id, addr)
                     return
             token = CURRENT_CLIENT.set(self)
             try:
                 response = await pdu.datastore_update(registers, pdu.dev_id)
-            except Exception as exc:  # noqa: BLE001 - a request pymodbus decodes but cannot serve
-                logging.getLogger(__name__).debug("request %s not served: %s", pdu, exc)
+            except Exception as exc:  # noqa: BLE001
+                # a request pymodbus decodes but cannot serve (FC8 with a sub-function
+                # it does not know raises KeyError): the function is not served, which
+                # is 01 (pymodbus would answer 04 and log a traceback)
+                logging.getLogger(__name__).debug("request %s not served: %r", pdu, exc)
                 response = ExceptionResponse(pdu.function_code, ExcCodes.ILLEGAL_FUNCTION)
             finally:
                 CURRENT_CLIENT.reset(token)
