@@ -125,6 +125,7 @@ def holding_block(rig) -> list[int]:
 
 # ---- identification and readings --------------------------------------------------------------
 def test_identification_reads_alike_with_every_master(rig):
+    assert rig.info["unit"] == UNIT
     model_reg = REG["model"]
     c = mbtcp(rig)
     words_tcp = c.read_input_registers(model_reg.address, model_reg.width)

@@ -17,6 +17,8 @@ Conventions (as a device datasheet would state them)
 - Writes (except to ``control``) need control of the rig: a client that writes
   while nobody holds control takes it implicitly; a write from another client
   while one holds it answers SERVER DEVICE BUSY (06).
+- Unit id (`rig-sim serve --unit`, default 1), broadcasts and the TCP gateway
+  answer: `addressing.py` and docs/protocol.md.
 - The sample ring buffer is a memory-mapped array of int16 records, see
   `RING_*` and docs/registers.md.
 Pure Python on purpose: no numpy, no rig internals.
