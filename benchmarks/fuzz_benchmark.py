@@ -3,8 +3,9 @@
 
 100,000 frames over Modbus TCP (flutter rig) and 10,000 over Modbus RTU through a
 socat pty pair (oscillator rig), both in --lockstep and --verbose, from the seeded
-generator and datasheet model of tests/rig_fuzzing.py (which also checks every
-answer as it goes; tests/test_rig_fuzz.py runs a smaller storm). Reported per
+generator and datasheet model of tests/fuzz_frames.py, run by tests/rig_fuzzing.py
+(which checks every answer as it goes; tests/test_rig_fuzz.py runs a smaller
+storm). Reported per
 transport:
 - settings_unchanged: every holding register read back (a real client, every 200
   frames and at the end) equals its value before the storm;

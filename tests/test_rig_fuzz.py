@@ -1,5 +1,6 @@
 """Robustness: the rig under a storm of random and mutated Modbus frames (the storm,
-its datasheet model and its checks are in tests/rig_fuzzing.py; the full-size run,
+its checks are in tests/rig_fuzzing.py, the frames and the datasheet model in
+tests/fuzz_frames.py; the full-size run,
 100,000 TCP and 10,000 RTU frames, is benchmarks/fuzz_benchmark.py).
 
 The rigs run with --verbose, their log in a file: a request that raised inside the
@@ -7,7 +8,8 @@ server would leave a traceback there, and none may."""
 
 from __future__ import annotations
 
-from tests.rig_fuzzing import SEED, Fuzzer, crc16, run_rtu, run_tcp
+from tests.fuzz_frames import Fuzzer, crc16
+from tests.rig_fuzzing import SEED, run_rtu, run_tcp
 
 TCP_FRAMES = 10_000
 RTU_FRAMES = 5_000
