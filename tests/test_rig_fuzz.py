@@ -1,7 +1,7 @@
-"""Robustness: the rig under a storm of random and mutated Modbus frames (the storm,
-its checks are in tests/rig_fuzzing.py, the frames and the datasheet model in
-tests/fuzz_frames.py; the full-size run,
-100,000 TCP and 10,000 RTU frames, is benchmarks/fuzz_benchmark.py).
+"""Robustness: the rig under a storm of random and mutated Modbus frames. The storm
+and its checks are in tests/rig_fuzzing.py, the frames and the datasheet model in
+tests/fuzz_frames.py; the full-size run (100,000 TCP and 10,000 RTU frames) is
+benchmarks/fuzz_benchmark.py.
 
 The rigs run with --verbose, their log in a file: a request that raised inside the
 server would leave a traceback there, and none may."""
