@@ -13,7 +13,7 @@ from pathlib import Path
 
 from rig_sim.device import register_map as M
 
-from .plans.autonomous import DEFAULTS as FLUTTER_DEFAULTS, ROOT_METHODS
+from .plans.options import OPTIONS
 
 
 class CampaignError(ValueError):
@@ -26,20 +26,6 @@ _RIG = {"time_scale": float, "lockstep": bool, "noise": float, "effects": list, 
         "seed": int}
 _LOOP = {"rate_hz": float, "lockstep_slice_s": float, "reconnect_s": float, "watchdog_s": float,
          "max_settle_rig_s": float}
-
-# cbc keys that are rig settings: checked against the register map's ranges
-_CBC_REGISTER = {"kp": "kp", "kd": "kd", "navg": "navg", "clamp": "clamp", "trip": "trip",
-                 "frequency_guess": "frequency"}
-
-_CBC_CHOICES = {"root_method": ROOT_METHODS}
-
-
-def _oscillator_defaults() -> dict:
-    try:
-        from .plans.forced import DEFAULTS
-        return DEFAULTS
-    except ImportError:           # the forced plan is optional until it lands
-        return {}
 
 
 def load_campaign(path: str | Path) -> tuple[dict, str]:
@@ -138,31 +124,13 @@ def validate(raw: dict, name: str = "campaign") -> dict:
     if "watchdog_s" in cfg["loop"]:
         _in_range(name, "loop.watchdog_s", cfg["loop"]["watchdog_s"], "watchdog_timeout", rig)
 
-    defaults = FLUTTER_DEFAULTS if rig == "flutter" else _oscillator_defaults()
     cbc = raw.get("cbc", {})
     if not isinstance(cbc, dict):
         raise CampaignError(f"{name}: [cbc] must be a table")
-    for k, v in cbc.items():
-        if defaults and k not in defaults:
-            raise CampaignError(f"{name}: cbc.{k}: unknown field for the {rig} plan "
-                                f"(known: {', '.join(sorted(defaults))})")
-        d = defaults.get(k)
-        if isinstance(d, str):
-            _type(name, f"cbc.{k}", v, str)
-            choices = _CBC_CHOICES.get(k)
-            if choices and v not in choices:
-                raise CampaignError(f"{name}: cbc.{k} = {v!r}: must be one of "
-                                    + ", ".join(f'"{c}"' for c in choices))
-        elif isinstance(d, bool):
-            _type(name, f"cbc.{k}", v, bool)
-        elif isinstance(d, int):
-            _type(name, f"cbc.{k}", v, int)
-            if v < 0:
-                raise CampaignError(f"{name}: cbc.{k} = {v}: must be >= 0")
-        elif isinstance(d, float) or d is None:
-            _type(name, f"cbc.{k}", v, float)
-        if k in _CBC_REGISTER:
-            _in_range(name, f"cbc.{k}", float(v), _CBC_REGISTER[k], rig)
+    try:
+        OPTIONS[rig].from_table(cbc)      # the plan's typed options check every field
+    except ValueError as exc:
+        raise CampaignError(f"{name}: {exc}") from None
     cfg["cbc"] = dict(cbc)
 
     if rig == "flutter":

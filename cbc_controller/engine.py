@@ -12,7 +12,6 @@ every setting it had written, and throws `RigRestarted` into the plan.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -277,8 +276,3 @@ class Engine:
                 result = self.execute(msg)
             except (RigFault, RigRestarted) as e:
                 exc = e
-
-
-def amplitude(coef) -> float:
-    """First-harmonic amplitude from the 15 coefficients (a0, a1..a7, b1..b7)."""
-    return float(math.hypot(coef[1], coef[1 + M.NHARM]))
