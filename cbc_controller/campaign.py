@@ -102,6 +102,33 @@ def _in_range(name: str, field: str, value: float, register: str, rig: str) -> N
         raise CampaignError(f"{name}: {field} = {value:g}: outside {lo:g}..{hi:g} {reg.unit} ({register})")
 
 
+def _check_embedded_rig(name: str, rig: str, section: dict) -> None:
+    """[rig] describes the embedded rig, which is `rig-sim serve` itself: its effects and
+    plugin are checked against rig_sim's own catalogue now, not when it starts. (The
+    controller imports nothing else of rig_sim but the register map.)"""
+    from rig_sim.physics.effects import EffectError, parse_effects, plugin_source
+
+    effects = section.get("effects", [])
+    for i, spec in enumerate(effects):
+        if not isinstance(spec, str):
+            raise CampaignError(f'{name}: rig.effects[{i}] = {spec!r}: expected "NAME=VALUE"')
+        try:
+            parse_effects(rig, [spec])
+        except EffectError as exc:      # its message names the CLI option: keep the reason
+            raise CampaignError(f"{name}: rig.effects[{i}] = {spec!r}: "
+                                f"{str(exc).split(': ', 1)[-1]}") from None
+    try:
+        parse_effects(rig, effects)     # together: an effect given twice
+    except EffectError as exc:
+        raise CampaignError(f"{name}: rig.effects: {str(exc).removeprefix('--effect ')}") from None
+    if "plugin" in section:
+        try:
+            plugin_source(section["plugin"])
+        except EffectError as exc:
+            raise CampaignError(f"{name}: rig.plugin = {section['plugin']!r}: "
+                                f"{str(exc).split(': ', 1)[-1]}") from None
+
+
 def validate(raw: dict, name: str = "campaign") -> dict:
     for k in raw:
         if k not in _TOP:
@@ -116,6 +143,7 @@ def validate(raw: dict, name: str = "campaign") -> dict:
         raise CampaignError(f"{name}: rig.time_scale must be > 0")
     if cfg["rig"].get("noise", 0.0) < 0:
         raise CampaignError(f"{name}: rig.noise must be >= 0")
+    _check_embedded_rig(name, rig, cfg["rig"])
     for k in ("rate_hz", "lockstep_slice_s", "reconnect_s", "watchdog_s", "max_settle_rig_s"):
         if k in cfg["loop"] and cfg["loop"][k] <= 0:
             raise CampaignError(f"{name}: loop.{k} must be > 0")

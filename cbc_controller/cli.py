@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import subprocess
@@ -13,6 +14,17 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from . import __version__
+
+
+def _positive_float(text: str) -> float:
+    """argparse type: a finite number > 0 (a time scale of 0 is not "the default")."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
+    return value
 
 
 class _Parser(argparse.ArgumentParser):
@@ -32,7 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", metavar="FILE.h5", help="campaign file to write (default: runs/<name>.h5)")
     r.add_argument("--resume", metavar="FILE.h5", help="continue a campaign that was interrupted")
     clock = r.add_mutually_exclusive_group()
-    clock.add_argument("--time-scale", type=float, metavar="K", help="embedded rig: K x real time")
+    clock.add_argument("--time-scale", type=_positive_float, metavar="K",
+                       help="embedded rig: K x real time (K > 0)")
     clock.add_argument("--lockstep", action="store_true", help="embedded rig: lockstep (fastest)")
     r.add_argument("--quiet", action="store_true", help="no progress on the terminal")
     idn = sub.add_parser("identify", help="read a rig's device identification (exit 0 if it "
@@ -79,7 +92,8 @@ class EmbeddedRig:
         if lockstep or (time_scale is None and rig.get("lockstep", False)):
             args.append("--lockstep")
         else:
-            args += ["--time-scale", str(time_scale or rig.get("time_scale", 20.0))]
+            scale = time_scale if time_scale is not None else rig.get("time_scale", 20.0)
+            args += ["--time-scale", str(scale)]
         if rig.get("effects"):
             args += ["--effect", *rig["effects"]]
         if rig.get("plugin"):
