@@ -13,7 +13,7 @@ from pathlib import Path
 
 from rig_sim.device import register_map as M
 
-from .plans.options import OPTIONS
+from .plans.options import OPTIONS, typed
 
 
 class CampaignError(ValueError):
@@ -44,19 +44,10 @@ def load_campaign(path: str | Path) -> tuple[dict, str]:
 
 
 def _type(name: str, field: str, value, kind) -> object:
-    if kind is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise CampaignError(f"{name}: {field} = {value!r}: expected a number")
-        if not math.isfinite(value):
-            raise CampaignError(f"{name}: {field} = {value!r}: not a finite number")
-        return float(value)
-    if kind is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise CampaignError(f"{name}: {field} = {value!r}: expected an integer")
-        return value
-    if not isinstance(value, kind):
-        raise CampaignError(f"{name}: {field} = {value!r}: expected {kind.__name__}")
-    return value
+    try:
+        return typed(field, value, kind)
+    except ValueError as exc:
+        raise CampaignError(f"{name}: {exc}") from None
 
 
 def _section(name: str, raw: dict, key: str, schema: dict) -> dict:

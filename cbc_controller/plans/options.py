@@ -33,7 +33,9 @@ class PlanOptions:
     def __post_init__(self) -> None:
         hints = typing.get_type_hints(type(self))
         for f in fields(self):
-            value = _checked(f"cbc.{f.name}", getattr(self, f.name), hints[f.name])
+            value = typed(f"cbc.{f.name}", getattr(self, f.name), hints[f.name])
+            if hints[f.name] is int and value < 0:
+                raise ValueError(f"cbc.{f.name} = {value}: must be >= 0")
             object.__setattr__(self, f.name, value)
             choices = self.CHOICES.get(f.name)
             if choices and value not in choices:
@@ -62,8 +64,9 @@ class PlanOptions:
         return asdict(self)
 
 
-def _checked(field: str, value, kind):
-    """The value of a field of type `kind` (float, int, bool or str), or ValueError."""
+def typed(field: str, value, kind):
+    """The value of a field of type `kind` (float, int, bool or str), or ValueError naming the
+    field (a number given as an integer becomes a float)."""
     if kind is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ValueError(f"{field} = {value!r}: expected a number")
@@ -73,8 +76,6 @@ def _checked(field: str, value, kind):
     if kind is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ValueError(f"{field} = {value!r}: expected an integer")
-        if value < 0:
-            raise ValueError(f"{field} = {value}: must be >= 0")
         return value
     if not isinstance(value, kind):
         raise ValueError(f"{field} = {value!r}: expected {kind.__name__}")
