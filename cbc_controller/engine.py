@@ -20,7 +20,7 @@ import numpy as np
 from rig_sim.device import register_map as M
 
 from .client import RigClient, RigError
-from .messages import (Arm, Configure, Disarm, Emit, Estimate, PlanContext, RigFault,
+from .messages import (Arm, Configure, Disarm, Emit, Estimate, PlanContext, Reseed, RigFault,
                        RigRestarted, Settle)
 
 FAULT_BIT = 1 << M.STATUS_BITS["fault"]
@@ -204,6 +204,12 @@ class Engine:
         if isinstance(msg, Disarm):
             self._call(lambda: self.rig.write(command=2))
             self.armed = False
+            return None
+        if isinstance(msg, Reseed):
+            if self.lockstep:
+                self._call(lambda: self.rig.write(noise_seed=msg.seed))
+                self.armed = False
+                self._config_periods = self._call(lambda: self.rig.get("periods"))
             return None
         if isinstance(msg, Settle):
             return self._settle(msg)

@@ -1,11 +1,14 @@
-"""The steps every plan shares, written once: configure and settle, ride out a fault, retry
-a step that faults, emit a point (numbered on from the file, never a key twice)."""
+"""The steps every plan shares, written once: start a reproducible segment, configure and
+settle, ride out a fault, retry a step that faults, emit a point (numbered on from the file,
+never a key twice)."""
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 
-from ..messages import Configure, Emit, RigFault, RigRestarted, Settle
+from ..messages import Configure, Emit, Reseed, RigFault, RigRestarted, Settle
 
 FAULTS = (RigFault, RigRestarted)     # what the engine throws into a plan at its yield
 
@@ -13,6 +16,16 @@ FAULTS = (RigFault, RigRestarted)     # what the engine throws into a plan at it
 def note(text: str, **fields) -> Emit:
     """A note document (free text, plus any fields a reader may use)."""
     return Emit("note", {"text": text, **fields})
+
+
+def start_segment(ctx, identity: str) -> Reseed:
+    """The message that starts the segment `identity` (an airspeed, a frequency's sweep: the
+    unit a resumed campaign redoes): its noise streams come from the campaign's seed and the
+    segment's identity alone, so a segment measured after a resume is the same as in the
+    campaign never interrupted."""
+    seed = ((ctx.config or {}).get("campaign") or {}).get("seed", 0)
+    digest = hashlib.sha256(f"{seed}/{identity}".encode()).digest()
+    return Reseed(int.from_bytes(digest[:4], "little") & 0x7FFFFFFF)   # the register's range
 
 
 def configure_and_settle(settings: dict, periods: int, record_s: float = 0.0):

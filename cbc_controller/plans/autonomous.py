@@ -22,6 +22,11 @@ both sides of the current root and fitting a line through all the blocks near it
 is then the regression's fixed point (A1 = A* where e = 0), which averages every
 block, rather than the last block alone.
 
+Each airspeed is a segment: it starts with the rig at rest and its noise streams seeded
+from the campaign's seed and the airspeed (`Reseed`, lockstep rigs). An airspeed with
+both its cycles in the file is skipped on resume; any other is measured again from its
+start, emitting the cycles the file lacks: the same numbers as without the interruption.
+
 Stability of a root from the sign of de/dA1*: the control is proportional in the
 amplitude error, so where the open-loop amplitude would decay (inside the
 unstable cycle and outside the stable one) the controlled response falls short
@@ -38,7 +43,7 @@ import numpy as np
 
 from ..harmonics import amplitude
 from ..messages import Arm, Configure, Disarm, Emit, RigFault, RigRestarted, Settle
-from ._steps import PointLog, configure_and_settle, point_doc
+from ._steps import PointLog, configure_and_settle, point_doc, start_segment
 from .bracket import Bracket
 from .options import FlutterOptions
 from .regression_root import pooled_sd, root_from_blocks
@@ -73,7 +78,7 @@ class _Search:
         self.settled: set = set()             # targets whose sign of e is known at steady state
         self.last_target = None
         self.t_wall = time.time()
-        self.found: list = []                 # (airspeed, stable, amplitude) found before
+        self.found: list = []                 # (airspeed, stable, target) found before
 
     def evaluate(self, A, quick: bool = False, sign_only: bool = False, coarse: bool = False):
         """Generator: Picard on DC and frequency at target amplitude A, then the
@@ -221,8 +226,11 @@ def flutter_plan(config: dict):
                          "clamp": o.clamp, "trip": o.trip, "airspeed": airspeeds[0],
                          "frequency": o.frequency_guess, **_targets(0.0, 0.0)})
         points = PointLog(ctx)
-        # (airspeed, stable, amplitude) of every cycle found so far, for warm starts
-        found = [(p["parameter"], bool(p["stable"]), p["amplitude"]) for p in ctx.previous
+        # (airspeed, stable, target amplitude) of every cycle found so far, for warm
+        # starts: a resumed campaign predicts from what the uninterrupted one would
+        found = [(p["parameter"], bool(p["stable"]),
+                  (p.get("extra") or {}).get("target_amplitude", p["amplitude"]))
+                 for p in ctx.previous
                  if p.get("status", "ok") == "ok" and p.get("parameter") is not None]
         faults_in_a_row = 0
         for V in airspeeds:
@@ -234,6 +242,7 @@ def flutter_plan(config: dict):
                 s.found = found
                 s.emit_root = _root_emitter(points, s, o)
                 try:
+                    yield start_segment(ctx, f"V={V:.4f}")  # from rest, its own noise
                     yield from _search_airspeed(s, o)      # emits each root as it is found
                     faults_in_a_row = 0
                     break
@@ -261,7 +270,7 @@ def _root_emitter(points: PointLog, s, o):
         k = sum(1 for x in s.roots_emitted if x["stable"] == r["stable"])
         s.roots_emitted.append(r)
         key = f"V={s.V:.4f}/{kind}{k}"
-        s.found.append((s.V, bool(r["stable"]), r.get("amplitude", r["target"])))
+        s.found.append((s.V, bool(r["stable"]), r["target"]))
         yield from points.emit(key, lambda index: _point_doc(index, key, s, r, o))
     return emit
 
@@ -277,7 +286,7 @@ def _search_airspeed(s: _Search, o: dict):
     phase-locked target needs the orbit to encircle its centre). The scan ends at
     the stable cycle (beyond it e only grows: the model has no further cycle there).
     """
-    yield Configure({"airspeed": s.V})
+    yield Configure({"airspeed": s.V, "frequency": s.f})
     yield from _from_rest(s, o)
     roots: list = []
     if o.warm_start:

@@ -100,11 +100,12 @@ frequency. ``RigRestarted`` (link lost; the engine re-applied the settings) void
 the point in progress: re-arm and redo it.
 
 **Resume.** Keys are ``f=<Hz, 3 decimals>/A=<target amplitude, m, 6 decimals>``.
-Keys in ``ctx.done`` are never emitted again. The sweep's state (the (A, Phi)
-history its step control, fold bookkeeping and labels need) is rebuilt from
-``ctx.previous`` when its entries are mappings with ``key``, ``amplitude`` and
-``parameter`` (and ``stable``); a done key without such a summary is re-measured
-but not emitted. The sweep then goes on from the largest done target.
+Each frequency's sweep is a segment: it starts with the rig at rest and its noise
+streams seeded from the campaign's seed and the frequency (`Reseed`, lockstep rigs), so
+it measures the same numbers whenever it runs. A sweep is done once a later frequency
+has points in the file; the last one begun is measured again from its start and only
+the points the file lacks are emitted (keys in ``ctx.done`` never are), so a resumed
+lockstep campaign logs exactly the points of one never interrupted.
 
 **Gains** (defaults kp = 1e4 1/s^2, kd = 50 1/s). Two requirements, checked with
 a one-harmonic model of this rig (linear stiffness per unit mass (2 pi 18 Hz)^2 ~
@@ -125,13 +126,12 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping
 
 import numpy as np
 
 from ..harmonics import NH, amplitude
 from ..messages import Arm, Configure, Disarm
-from ._steps import PointLog, lost_to_fault, note, point_doc
+from ._steps import PointLog, lost_to_fault, note, point_doc, start_segment
 from .forced_numbers import centred_slope, forcing_of, parabola, zero_targets
 from .forced_point import attempt, probe
 from .options import ForcedOptions
@@ -157,112 +157,80 @@ def oscillator_plan(config: dict):
     def plan(ctx):
         sample_rate = float((ctx.identity or {}).get("sample_rate", 10000.0))
         points = PointLog(ctx)
-        summaries = _summaries(ctx)
         settings = {"kp": o.kp, "kd": o.kd, "navg": o.navg, "phase_mode": 0,
                     "clamp": o.clamp, "trip": o.trip, "filter_hz": o.filter_hz,
                     "forcing_amplitude": o.forcing_amplitude, "frequency": freqs[0],
                     **zero_targets()}
         if (yield from lost_to_fault(Configure(settings))):   # lost before it was written
             yield Configure(settings)                           # once more
-        for f in freqs:
-            yield from _run_sweep(Sweep(f, o, sample_rate), o, ctx, summaries, points)
+        for i, f in enumerate(freqs):
+            # a sweep in the file is done once a later one has begun; the last begun is
+            # measured again from its start, emitting what the file lacks (see Resume)
+            if any(_frequency_of(k) in freqs[i + 1:] for k in points.done):
+                continue
+            yield from _run_sweep(Sweep(f, o, sample_rate), o, ctx, points)
         yield from lost_to_fault(Disarm())                      # disarmed either way
 
     return plan
 
 
-def _summaries(ctx) -> dict:
-    """key -> (amplitude, parameter, stable or None) from ctx.previous, where given."""
-    out = {}
-    for p in ctx.previous or []:
-        if isinstance(p, Mapping) and {"key", "amplitude", "parameter"} <= set(p):
-            try:
-                st = p.get("stable")
-                out[str(p["key"])] = (float(p["amplitude"]), float(p["parameter"]),
-                                      None if st is None else bool(st))
-            except (TypeError, ValueError):
-                continue
-    return out
+def _frequency_of(key: str) -> float | None:
+    m = _KEY.match(str(key))
+    return float(m.group(1)) if m else None
 
 
-def _done_targets(ctx, f: float) -> list[float]:
-    out = []
-    for k in ctx.done or ():
-        m = _KEY.match(str(k))
-        if m and abs(float(m.group(1)) - f) < 5e-4:
-            out.append(float(m.group(2)))
-    return sorted(out)
-
-
-def _run_sweep(s: Sweep, o: ForcedOptions, ctx, summaries: dict, points: PointLog):
-    """Generator: the whole sweep at one frequency."""
+def _run_sweep(s: Sweep, o: ForcedOptions, ctx, points: PointLog):
+    """Generator: the whole sweep at one frequency, a segment of its own (from rest, its
+    own noise streams)."""
     start = {"frequency": s.f, "forcing_amplitude": o.forcing_amplitude, "phase_mode": 0,
              **zero_targets()}
-    if (yield from lost_to_fault(Configure(start), Arm())):
+    if (yield from lost_to_fault(start_segment(ctx, f"f={s.f:.3f}"), Configure(start), Arm())):
         s.armed = False                   # the first point re-arms (and re-configures)
         yield Configure(start)
-    done = points.done
-    replay = _done_targets(ctx, s.f)      # already in the file: rebuild the state only
-    A = replay.pop(0) if replay else round(o.amplitude_start, 6)
+    A = round(o.amplitude_start, 6)
     prev_A = None                         # target of the last measured point
     last = None                           # its measurement
     skips = 0
     why = ""
     while True:
-        key = point_key(s.f, A)
-        if key in summaries and key in done:
-            amp, phi, st = summaries[key]
-            slope, _, _ = s.add(A, amp, phi, 0.0, s.predict_harmonics(A))
-            s.labels.append(st if st is not None else slope > 0)
-            s.update_folds()
-            last = {"target": A, "amplitude": amp, "parameter": phi, "parameter_se": 0.0,
-                    "harmonics": s.harm[-1][1]}
-            prev_A = A
-        else:
-            res = yield from attempt(s, o, A, prev_A)
-            if res is None:                   # lost to faults: skipped
-                skips += 1
-                if skips >= o.max_fault_skips:
-                    why = f"{skips} targets in a row lost to rig faults"
-                    break
-                if not replay:
-                    A = round(A + s.h, 6)
-                    why = s.finished(A)
-                    if why:
-                        break
-                    continue
-            else:
-                skips = 0
-                A = res["target"]             # a fault may have moved it
-                key = point_key(s.f, A)
-                slope, se, c2 = s.add(A, res["amplitude"], res["parameter"],
-                                      res["parameter_se"], res["harmonics"])
-                label = {"slope": slope, "slope_se": se, "method": "parabola", "probe": None}
-                prev_label = s.labels[-1] if s.labels else True   # the origin: stable rest
-                spacing = s.pts[-1][0] - s.pts[-2][0]
-                near_vertex = c2 != 0 and abs(slope / (2 * c2)) < 0.5 * spacing
-                if (slope > 0) != prev_label or abs(slope) <= 3 * se or near_vertex:
-                    below = s.targets_done[-2] if len(s.targets_done) >= 2 else 0.0
-                    slope_below = yield from probe(s, o, res, c2, below)
-                    if slope_below is not None:
-                        label.update(slope_below)
-                s.labels.append(label["slope"] > 0)
-                yield from points.emit(key, lambda i: _point_doc(i, key, s, res, o, label))
-                if last is not None and s.labels[-1] != s.labels[-2]:
-                    # a fold between the last two points: close in on it
-                    yield from _refine_fold(s, o, points, last, res)
-                fold = s.update_folds()
-                if fold is not None:
-                    yield note(f"f = {s.f:g} Hz: {fold['kind']} fold near A = "
-                               f"{fold['amplitude'] * 1e3:.3f} mm, Phi = "
-                               f"{fold['parameter']:.3f} m/s^2", fold=fold)
-                last = res
-                prev_A = A
-        if replay:
-            A = replay.pop(0)
+        res = yield from attempt(s, o, A, prev_A)
+        if res is None:                   # lost to faults: skipped
+            skips += 1
+            if skips >= o.max_fault_skips:
+                why = f"{skips} targets in a row lost to rig faults"
+                break
+            A = round(A + s.h, 6)
+            why = s.finished(A)
+            if why:
+                break
             continue
-        h = s.next_step()
-        A = round((prev_A if prev_A is not None else A) + h, 6)
+        skips = 0
+        A = res["target"]                 # a fault may have moved it
+        key = point_key(s.f, A)
+        slope, se, c2 = s.add(A, res["amplitude"], res["parameter"],
+                              res["parameter_se"], res["harmonics"])
+        label = {"slope": slope, "slope_se": se, "method": "parabola", "probe": None}
+        prev_label = s.labels[-1] if s.labels else True   # the origin: stable rest
+        spacing = s.pts[-1][0] - s.pts[-2][0]
+        near_vertex = c2 != 0 and abs(slope / (2 * c2)) < 0.5 * spacing
+        if (slope > 0) != prev_label or abs(slope) <= 3 * se or near_vertex:
+            below = s.targets_done[-2] if len(s.targets_done) >= 2 else 0.0
+            slope_below = yield from probe(s, o, res, c2, below)
+            if slope_below is not None:
+                label.update(slope_below)
+        s.labels.append(label["slope"] > 0)
+        yield from points.emit(key, lambda i: _point_doc(i, key, s, res, o, label))
+        if last is not None and s.labels[-1] != s.labels[-2]:
+            # a fold between the last two points: close in on it
+            yield from _refine_fold(s, o, points, last, res)
+        fold = s.update_folds()
+        if fold is not None:
+            yield note(f"f = {s.f:g} Hz: {fold['kind']} fold near A = "
+                       f"{fold['amplitude'] * 1e3:.3f} mm, Phi = "
+                       f"{fold['parameter']:.3f} m/s^2", fold=fold)
+        last = res
+        prev_A = A
+        A = round(A + s.next_step(), 6)
         why = s.finished(A)
         if why:
             break
@@ -280,8 +248,7 @@ def _refine_fold(s: Sweep, o: ForcedOptions, points: PointLog, lo: dict, hi: dic
         if hi["amplitude"] - lo["amplitude"] <= o.fold_gap * hi["amplitude"]:
             return
         T = round(0.5 * (lo["target"] + hi["target"]), 6)
-        key = point_key(s.f, T)
-        if not lo["target"] < T < hi["target"] or key in points.done:
+        if not lo["target"] < T < hi["target"]:
             return
         res = yield from attempt(s, o, T, lo["target"],
                                  start=0.5 * (lo["harmonics"] + hi["harmonics"]))
