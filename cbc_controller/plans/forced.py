@@ -166,7 +166,7 @@ def oscillator_plan(config: dict):
         for i, f in enumerate(freqs):
             # a sweep in the file is done once a later one has begun; the last begun is
             # measured again from its start, emitting what the file lacks (see Resume)
-            if any(_frequency_of(k) in freqs[i + 1:] for k in points.done):
+            if _begun(points.done, freqs[i + 1:]):
                 continue
             yield from _run_sweep(Sweep(f, o, sample_rate), o, ctx, points)
         yield from lost_to_fault(Disarm())                      # disarmed either way
@@ -174,9 +174,10 @@ def oscillator_plan(config: dict):
     return plan
 
 
-def _frequency_of(key: str) -> float | None:
-    m = _KEY.match(str(key))
-    return float(m.group(1)) if m else None
+def _begun(done, freqs) -> bool:
+    """Whether the file has points of any of these frequencies (keys hold 3 decimals)."""
+    logged = [float(m.group(1)) for m in map(_KEY.match, map(str, done)) if m]
+    return any(abs(f - g) < 5e-4 for f in logged for g in freqs)
 
 
 def _run_sweep(s: Sweep, o: ForcedOptions, ctx, points: PointLog):
