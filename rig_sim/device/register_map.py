@@ -163,6 +163,10 @@ def _table() -> list[Register]:
         Register("advance", H, 24, "u32", "samples", "rw",
                  "lockstep only: advance the simulation this many samples, answered when done",
                  range=(1, 1_000_000)),
+        Register("noise_seed", H, 28, "u32", "", "rw",
+                 "lockstep only: restart the simulation from rest (disarmed, estimator cleared) "
+                 "with its noise streams seeded from this value; settings and counters stay",
+                 range=(0, 2**31 - 1)),
     ]
     for i, c in enumerate(COEFS):
         r.append(Register(f"target_{c}", H, 30 + 2 * i, "f32", "m", "rw",
