@@ -131,17 +131,18 @@ class Driver:
         return {"rc": rc, "stderr": self.err.decode()}
 
 
-def _wait_running(where, fragment: str, for_s: float, timeout: float = 300) -> None:
+def _wait_running(where, fragment: str, for_s: float, driver: Driver,
+                  timeout: float = 300) -> None:
     """Until a process matching `fragment` has run on `where` (a node, or any node of a
-    cluster) for `for_s` seconds."""
+    cluster) for `for_s` seconds, while `driver` runs."""
     t0, since = time.time(), None
-    while time.time() - t0 < timeout:
+    while time.time() - t0 < timeout and driver.proc.poll() is None:
         pids = where.running(fragment)
         since = (since or time.time()) if pids else None
         if since and time.time() - since >= for_s:
             return
         time.sleep(0.2)
-    raise RuntimeError(f"no {fragment!r} ran")
+    raise RuntimeError(f"no {fragment!r} ran: {driver.err.decode()[-3000:]}")
 
 
 def _wait_points(member_folder: str, n: int, timeout: float = 300) -> None:
@@ -180,7 +181,7 @@ def _fleet(cfg: str, out: Path, env: dict) -> Driver:
 
 def main(work: Path) -> None:
     work.mkdir(parents=True, exist_ok=True)
-    (work / "small.toml").write_text(FLUTTER.format(name="small", values="[18.5, 22.3]"))
+    (work / "small.toml").write_text(FLUTTER.format(name="small", values="[18.5, 20.5, 22.3]"))
     (work / "one.toml").write_text(FLUTTER.format(name="one", values="[20.5]"))
     (work / "four.toml").write_text(FLUTTER.format(name="four", values="[18.5, 19.5, 20.5, 22.3]"))
     (work / "osc23.toml").write_text(OSCILLATOR.format(name="osc23", freq=23.0))
@@ -201,7 +202,7 @@ def main(work: Path) -> None:
 
         # fleet A: the second node is lost while both nodes run members
         a = _fleet(str(work / "fleet_a.toml"), work / "A", env)
-        _wait_running(second, "cbc_controller.cli run", 4.0)   # a member half-way there
+        _wait_running(second, "cbc_controller.cli run", 2.0, a)   # a member under way
         res["lost_member"] = _member_of(second.running("cbc_controller.cli run")[0])
         second.kill()
         res["killed_at"] = a.err.decode().count("\n[")

@@ -144,7 +144,10 @@ class FleetOptions:
             table["plugin"] = f"{PLUGIN_FILE}:{func}"
         text = (f"# fleet {self.name}: member {ident} ({campaign}, settings "
                 f"{settings.label!r}, seed {seed})\n" + dump_toml(raw))
-        validate(tomllib.loads(text), ident)        # the member's file is a valid campaign
+        check = tomllib.loads(text)                 # the member's file is a valid campaign,
+        if settings.plugin is not None:             # its plugin where it is on this machine
+            check["rig"]["plugin"] = settings.plugin
+        validate(check, ident)
         return Member(ident, campaign, rig, settings, seed, text, source, self.clock_args())
 
 
