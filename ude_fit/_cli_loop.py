@@ -12,8 +12,9 @@ import os
 import shlex
 
 
-def add_parsers(sub, types) -> None:
-    positive_int, nonneg_float = types
+def add_parsers(sub) -> None:
+    from ._cli_options import nonnegative_float as nonneg_float
+    from ._cli_options import positive_int
 
     def common(p, *, seed_help="random seed of the cross-validation folds and bootstrap"):
         p.add_argument("data", nargs="+", metavar="DATA",

@@ -18,8 +18,9 @@ _KEYS = ("branch_rms", "branch_rms_with_missed", "branch_max", "missed", "trajec
          "hopf", "fold")
 
 
-def add_parser(sub, types) -> None:
-    positive_int, finite_float, nonneg_float, positive_float = types
+def add_parser(sub) -> None:
+    from ._cli_options import finite_float, positive_int, positive_float
+    from ._cli_options import nonnegative_float as nonneg_float
     p = sub.add_parser("pipeline", help="fit, then close the loop, then one summary report "
                        "(what the demo runs)")
     p.add_argument("data", nargs="+", metavar="DATA",
@@ -74,8 +75,8 @@ def cmd_pipeline(args, argv) -> int:
     fit_args = argparse.Namespace(
         data=args.data, system=args.system, approximator="nn", training="periodic",
         mechanistic="equation", starts=args.starts, seed=args.seed, width=12, depth=2,
-        weight_decay=0.0, equilibrium_penalty=args.equilibrium_penalty,
-        smoothness_penalty=args.smoothness_penalty, param_scale=args.param_scale,
+        weight_decay=0.0, equilibrium_penalty=args.equilibrium_penalty or 0.0,
+        smoothness_penalty=args.smoothness_penalty or 0.0, param_scale=args.param_scale,
         param_dependence="input", param_degree=2, rest_stability=0.0, energy_shape=0.0,
         energy_rising=0.0,
         reference_hopf=args.reference_hopf, reference_fold=args.reference_fold,

@@ -15,6 +15,7 @@ and then the smallest error, and the result says so.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -32,10 +33,13 @@ from ._train import Diverged, TrainConfig, refine_mechanistic, train_ude
 
 APPROXIMATORS = ("nn", "gp")
 TRAININGS = ("trajectory", "periodic")
+MECHANISTIC = ("equation", "periodic")
 
 
 @dataclass(frozen=True)
 class FitOptions:
+    """Everything a fit takes, checked when built: a ValueError names the option (in the
+    command line's spelling) and what is wrong with it."""
     system: str
     approximator: str = "nn"
     training: str = "periodic"
@@ -47,27 +51,56 @@ class FitOptions:
     adequacy_floor: float = 0.01
     gp_restarts: int = 2
     mechanistic: str = "equation"     # "equation": least squares; "periodic": then refined
+    reference_hopf: float | None = None   # known Hopf airspeed (m/s), for the error figures
+    reference_fold: float | None = None   # known fold airspeed (m/s)
 
     def __post_init__(self):
         if self.system not in ("flutter", "oscillator"):
-            raise ValueError(f"system must be flutter or oscillator, not {self.system!r}")
+            raise ValueError(f"--system must be flutter or oscillator, not {self.system!r}")
         if self.approximator not in APPROXIMATORS:
-            raise ValueError(f"approximator must be nn or gp, not {self.approximator!r}")
+            raise ValueError(f"--approximator must be nn or gp, not {self.approximator!r}")
         if self.training not in TRAININGS:
-            raise ValueError(f"training must be trajectory or periodic, not {self.training!r}")
-        if self.mechanistic not in ("equation", "periodic"):
-            raise ValueError(f"mechanistic must be equation or periodic, not {self.mechanistic!r}")
-        if self.system != "flutter" and (self.train.linear_weight or self.train.smooth_weight
-                                         or self.train.rest_weight
-                                         or self.train.energy_weight):
-            raise ValueError("the equilibrium, smoothness, rest-stability and energy-shape "
-                             "penalties are for the aerofoil (flutter) only")
-        if self.starts < 1:
-            raise ValueError(f"starts must be at least 1, not {self.starts}")
+            raise ValueError(f"--training must be trajectory or periodic, not "
+                             f"{self.training!r}")
+        if self.mechanistic not in MECHANISTIC:
+            raise ValueError(f"--mechanistic must be equation or periodic, not "
+                             f"{self.mechanistic!r}")
+        for name, least in (("starts", 1), ("samples", 8), ("gp_restarts", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < least:
+                raise ValueError(f"--{name.replace('_', '-')} must be an integer at least "
+                                 f"{least}, not {v!r}")
+        if not isinstance(self.train, TrainConfig):
+            raise ValueError(f"train must be a TrainConfig, not {self.train!r}")
+        for name in ("reference_hopf", "reference_fold"):
+            v = getattr(self, name)
+            if v is not None and not math.isfinite(v):
+                raise ValueError(f"--{name.replace('_', '-')} must be finite, not {v!r}")
+        if self.system != "flutter" and self.reference():
+            raise ValueError("--reference-hopf/--reference-fold apply to --system flutter "
+                             "only")
+        active = [p for p in self.train.penalties if p.weight]
+        aero = [p for p in active if p.aerofoil_only]
+        if self.system != "flutter" and aero:
+            raise ValueError("/".join(f"--{p.option}" for p in aero)
+                             + " apply to --system flutter only")
+        if self.approximator != "nn":
+            nn_only = [f"--{p.option}" for p in active]
+            if self.train.param_scale != 1.0:
+                nn_only.append("--param-scale")
+            if self.train.param_dependence != "input":
+                nn_only.append("--param-dependence polynomial")
+            if nn_only:
+                raise ValueError("/".join(nn_only) + " apply to --approximator nn only")
 
-    def to_dict(self) -> dict:
+    def reference(self) -> dict:
+        """The known Hopf and fold airspeeds given, as {"hopf": V, "fold": V}."""
+        return {k: v for k, v in (("hopf", self.reference_hopf),
+                                  ("fold", self.reference_fold)) if v is not None}
+
+    def to_json(self) -> dict:
         d = asdict(self)
-        d["train"] = asdict(self.train.for_system(self.system))   # the values actually used
+        d["train"] = self.train.for_system(self.system).to_json()   # the values actually used
         return d
 
 
@@ -320,6 +353,8 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
     """
     say = progress or (lambda **kw: None)
     t_start = time.perf_counter()
+    if reference is None:
+        reference = opts.reference() or None
     data, ranges, ref, ref_source = prepare(ds, opts.system, reference, opts.samples)
     if mechanistic is not None:
         return _fit_on(mechanistic, ds, data, opts, ranges, ref, ref_source, say, t_start,

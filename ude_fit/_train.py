@@ -23,6 +23,7 @@ shared by every random start.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass
 
@@ -32,10 +33,10 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from ._flow import diffrax_samples, harmonics, rk4_orbit
+from ._flow import diffrax_samples, rk4_orbit
 from ._identify import TrainingData, residual_forces
-from ._metrics import unstable_amplitude_line
-from ._models import UDE, Drive, MLPCorrection, PolynomialParamCorrection, feature_scaling
+from ._models import UDE, MLPCorrection, PolynomialParamCorrection, feature_scaling
+from ._penalties import Penalty, penalty_sum, regularity_points
 
 
 class Diverged(RuntimeError):
@@ -44,8 +45,10 @@ class Diverged(RuntimeError):
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Training settings. A field left at None takes its system's default
-    (:data:`SYSTEM_DEFAULTS`, applied by :meth:`for_system`)."""
+    """How one correction is trained: the network, the optimiser's steps, the shooting
+    losses' weights and the penalties (:mod:`._penalties`). A field left at None takes its
+    system's default (:data:`SYSTEM_DEFAULTS`, applied by :meth:`for_system`). Checks its
+    own fields when built (ValueError naming the field)."""
     width: int = 12
     depth: int = 2
     equation_steps: int | None = None         # Adam steps on the equation loss
@@ -58,20 +61,40 @@ class TrainConfig:
     stability_weight: float = 10.0
     stability_margin: float = 0.02
     init_scale: float = 1e-2
-    weight_decay: float = 0.0    # periodic training: penalty on the mean square NN weight
-    # aerofoil only (see _equilibrium_penalty, _smoothness_penalty): penalties on the
-    # correction's value and slope at the equilibrium, and on its curvature in V and amplitude
-    linear_weight: float | None = None
-    smooth_weight: float | None = None
     param_scale: float = 1.0     # the parameter input is standardised by this times its spread
-    rest_weight: float = 0.0     # aerofoil: the equilibrium stable where the data says so
-    energy_weight: float = 0.0   # aerofoil: net work per cycle / A^2 concave in A^2
-    rising_weight: float = 0.0   # aerofoil: the whole model's net work per cycle / A^2 rising in V
     # how the NN correction depends on the parameter: "input" (a network input like the
     # states) or "polynomial" (a polynomial of param_degree in it, state-dependent
     # coefficients; PolynomialParamCorrection)
     param_dependence: str = "input"
     param_degree: int = 2
+    penalties: tuple[Penalty, ...] = ()
+
+    def __post_init__(self):
+        for name in ("width", "depth", "param_degree"):
+            _check_int(name, getattr(self, name), 1)
+        for name in ("equation_steps", "equation_lbfgs_steps", "adam_steps", "lbfgs_steps"):
+            if getattr(self, name) is not None:
+                _check_int(name, getattr(self, name), 0)
+        if self.substeps is not None:
+            _check_int("substeps", self.substeps, 1)
+        for name in ("learning_rate", "init_scale", "param_scale"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number, not {v!r}")
+        for name in ("closure_weight", "stability_weight", "stability_margin"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a number at least 0, not {v!r}")
+        if self.param_dependence not in PARAM_DEPENDENCE:
+            raise ValueError(f"param_dependence must be input or polynomial, not "
+                             f"{self.param_dependence!r}")
+        object.__setattr__(self, "penalties", tuple(self.penalties))
+        kinds = [type(p) for p in self.penalties]
+        for p in self.penalties:
+            if not isinstance(p, Penalty):
+                raise ValueError(f"penalties must be Penalty objects, not {p!r}")
+        if len(set(kinds)) != len(kinds):
+            raise ValueError("penalties: each kind at most once")
 
     def for_system(self, system: str) -> "TrainConfig":
         """This configuration with every None field set to ``system``'s default."""
@@ -79,14 +102,28 @@ class TrainConfig:
             raise ValueError(f"unknown system {system!r} (flutter or oscillator)")
         cfg = dataclasses.replace(self, **{k: v for k, v in SYSTEM_DEFAULTS[system].items()
                                            if getattr(self, k) is None})
-        if cfg.param_dependence not in PARAM_DEPENDENCE:
-            raise ValueError(f"param_dependence must be input or polynomial, not "
-                             f"{cfg.param_dependence!r}")
-        if cfg.param_degree < 1:
-            raise ValueError(f"param_degree must be at least 1, not {cfg.param_degree}")
         if cfg.equation_lbfgs_steps is None:
             cfg = dataclasses.replace(cfg, equation_lbfgs_steps=cfg.lbfgs_steps)
         return cfg
+
+    def penalty(self, kind: type) -> Penalty | None:
+        """The penalty of class ``kind``, if any."""
+        return next((p for p in self.penalties if isinstance(p, kind)), None)
+
+    def needs_points(self) -> bool:
+        """Whether any active penalty reads the regularity points."""
+        return any(p.needs_points and p.weight for p in self.penalties)
+
+    def to_json(self) -> dict:
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+             if f.name != "penalties"}
+        d["penalties"] = {k: v for p in self.penalties for k, v in p.to_json().items()}
+        return d
+
+
+def _check_int(name: str, v, least: int) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
+        raise ValueError(f"{name} must be an integer at least {least}, not {v!r}")
 
 
 PARAM_DEPENDENCE = ("input", "polynomial")
@@ -96,10 +133,9 @@ PARAM_DEPENDENCE = ("input", "polynomial")
 # makes its shooting losses 3x cheaper; its correction is cheap to fit to the equation
 # residual, and that first stage decides most of the final quality, so it gets more steps.
 SYSTEM_DEFAULTS = {
-    "flutter": dict(equation_steps=1500, adam_steps=300, lbfgs_steps=100, substeps=4,
-                    linear_weight=0.0, smooth_weight=0.0),
+    "flutter": dict(equation_steps=1500, adam_steps=300, lbfgs_steps=100, substeps=4),
     "oscillator": dict(equation_steps=4000, equation_lbfgs_steps=1000, adam_steps=300,
-                       lbfgs_steps=100, substeps=2, linear_weight=0.0, smooth_weight=0.0),
+                       lbfgs_steps=100, substeps=2),
 }
 
 
@@ -126,261 +162,13 @@ def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig):
 # losses
 # ---------------------------------------------------------------------------------------
 
-def _equation_loss(params, static, mech, Z, R, reg=None, rw=(0.0, 0.0)):
+def equation_loss(params, static, mech, Z, R, penalties=(), reg=None):
+    """The correction against the residual forces R at the features Z, plus the penalties
+    that act in the equation stage."""
     corr = eqx.combine(params["corr"], static)
     pred = jax.vmap(corr)(Z)
     loss = jnp.mean(((pred - R) / corr.scaling.out_scale) ** 2)
-    return loss + _regularity(UDE(mech, corr), reg, rw)
-
-
-# ---------------------------------------------------------------------------------------
-# regularity of the correction away from the measured orbits
-# ---------------------------------------------------------------------------------------
-
-class Regularity(eqx.Module):
-    """Where the correction is asked to stay regular (aerofoil): a grid of airspeeds over
-    the whole diagram range, the measured states, and the scales that make the penalties
-    dimensionless."""
-    V: jax.Array          # (m,) airspeeds from below the lowest to beyond the highest measured
-    ys: jax.Array         # (k, n_state) states sampled from the measured orbits
-    y_scale: jax.Array    # (n_state,)
-    v_span: jax.Array     # () the measured airspeeds' spread
-    ys_V: jax.Array       # (k,) the airspeed of each state in ys
-    rest_stable: jax.Array  # (m,) 1.0 where V holds a stable equilibrium by the data
-    omega: jax.Array      # () the measured orbits' mean angular frequency
-    # for the energy-shape penalty only:
-    shapes: jax.Array | None = None     # (n_orbits, n, n_state) orbits at unit heave amplitude
-    shape_V: jax.Array | None = None    # (n_orbits,) their airspeeds
-    shape_dt: jax.Array | None = None   # (n_orbits,) time between their samples (s)
-    energy_amps: jax.Array | None = None  # (j,) heave amplitudes (m), 4 % to 130 % of the largest
-    # for the rest-stability penalty: 1.0 where V is beyond the Hopf point the unstable
-    # orbits extrapolate to (their amplitude^2 linear in V, shrinking to zero)
-    rest_unstable: jax.Array | None = None
-    # for the energy-rising penalty: airspeeds from half a span below the lowest measured
-    # one to the end of the traced range
-    rising_V: jax.Array | None = None
-
-
-def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> Regularity:
-    """The penalty points for ``data``: airspeeds across the range the diagram is traced
-    over (see ``_fit.diagram_ranges``), states at ``per_orbit`` phases of every orbit."""
-    P = np.asarray(data.drive.param, float)
-    span = max(float(np.ptp(P)), 0.1 * float(P.max()))
-    V = np.linspace(max(0.5, P.min() - 1.5 * span), P.max() + 0.75 * span, n_v)
-    ys = np.asarray(data.ys)
-    step = max(1, ys.shape[1] // per_orbit)
-    # an unstable limit cycle surrounds a stable equilibrium (it is the boundary of its
-    # basin): the equilibrium is stable up to the highest airspeed of one
-    lab = np.asarray(data.label)
-    v_stable = P[lab < 0].max() if np.any(lab < 0) else -np.inf
-    # first-harmonic heave amplitude of each orbit, to scale its shape to unit amplitude
-    c = harmonics(ys[:, :, 0].T, 1)
-    amp = np.hypot(c[1], c[2])
-    a_grid = np.linspace(0.04, 1.3, 16) * amp.max()
-    v_hopf = _hopf_from_unstable(P, amp, lab)
-    # 16 samples per shape: the cycle mean of q' (7 harmonics) times the force is exact
-    # while the force has nothing above the 9th harmonic
-    every = max(1, ys.shape[1] // 16)
-    return Regularity(jnp.asarray(V), jnp.asarray(ys[:, ::step].reshape(-1, ys.shape[-1])),
-                      jnp.asarray(data.y_scale), jnp.asarray(span),
-                      jnp.asarray(np.repeat(P, len(range(0, ys.shape[1], step)))),
-                      jnp.asarray((V <= v_stable).astype(float)),
-                      jnp.asarray(float(np.mean(2 * np.pi / np.asarray(data.period)))),
-                      jnp.asarray(ys[:, ::every] / amp[:, None, None]), jnp.asarray(P),
-                      jnp.asarray(np.asarray(data.period) / ys[:, ::every].shape[1]),
-                      jnp.asarray(a_grid),
-                      jnp.asarray((V >= v_hopf + 0.1 * span).astype(float)),
-                      jnp.asarray(np.arange(P.min() - 0.5 * span, V[-1] + 1e-9,
-                                           span / 4)))
-
-
-def _hopf_from_unstable(P, amp, lab) -> float:
-    """Where the unstable orbits' amplitude^2, linear in V near a Hopf point, reaches zero
-    (as ``_metrics.estimate_from_data``); +inf where the data cannot say (fewer than two
-    unstable orbits, or no shrinking trend)."""
-    c = unstable_amplitude_line(P[lab < 0], amp[lab < 0])
-    return float(-c[1] / c[0]) if c is not None and c[0] < 0 else np.inf
-
-
-def _equilibrium_penalty(model: UDE, reg: Regularity):
-    """What the correction does to the equilibrium y = 0 and its linearisation, over the
-    airspeed range: mean square of U(0; V) and of dU/dy(0; V) y_scale, in units of the
-    correction's own force scale. The Hopf point is a property of that linearisation; the
-    measured orbits (finite amplitude) hardly constrain it, so without this a network is
-    free to move it."""
-    out = model.correction.scaling.out_scale
-    n = 2 * model.mech.n_dof
-    y0 = jnp.zeros(model.n_state)
-
-    def one(V):
-        d = Drive.of(V)
-        g = lambda y: model.correction_force(y, d) / out
-        u0, J = g(y0), jax.jacfwd(g)(y0)
-        return jnp.mean(u0 ** 2) + jnp.mean((J[:, :n] * reg.y_scale[:n]) ** 2)
-
-    return jnp.mean(jax.vmap(one)(reg.V))
-
-
-def _smoothness_penalty(model: UDE, reg: Regularity):
-    """Curvature of the correction along the airspeed and along the amplitude, in units of
-    its force scale: mean square second difference of U over the airspeed grid at the
-    measured states (as d2U/dV2 v_span^2), plus mean square third difference of U(s y; V)
-    over s in [0, 1] between the equilibrium and each measured state y (as d3U/ds3). A
-    correction that bends quickly with V makes the branch of orbits snake through the
-    measured points; one that bends quickly below the smallest measured orbit puts folds
-    and isolas between it and the Hopf point. Third differences leave U ~ s^2 free, which
-    with the equilibrium penalty (U(0) = dU/dy(0) = 0) is the smoothest way to reach the
-    measured correction."""
-    out = model.correction.scaling.out_scale
-    dV = reg.V[1] - reg.V[0]
-    U = jax.vmap(lambda V: jax.vmap(lambda y: model.correction_force(y, Drive.of(V)))(reg.ys))(
-        reg.V) / out                                   # (m, k, n_dof)
-    d2 = (U[2:] - 2 * U[1:-1] + U[:-2]) * (reg.v_span / dV) ** 2
-    s = jnp.linspace(0.0, 1.0, 6)
-    W = jax.vmap(lambda a: jax.vmap(lambda y, V: model.correction_force(a * y, Drive.of(V)))(
-        reg.ys, reg.ys_V))(s) / out                   # (6, k, n_dof)
-    d3 = (W[3:] - 3 * W[2:-1] + 3 * W[1:-2] - W[:-3]) / (s[1] - s[0]) ** 3
-    return jnp.mean(d2 ** 2) + jnp.mean(d3 ** 2)
-
-
-def _rest_penalty(model: UDE, reg: Regularity, margin: float = 1e-3):
-    """Squared hinge on the equilibrium's largest growth rate (over the orbits' angular
-    frequency) at the airspeeds where the data says the equilibrium is stable: a correction
-    otherwise free there can move the Hopf point far below the measured orbits. Where the
-    data points to a Hopf point, the same hinge the other way beyond it."""
-    y0 = jnp.zeros(model.n_state)
-
-    def growth(V):
-        d = Drive.of(V)
-        f = lambda y: model.vector_field(0.0, y, d)
-        # at the equilibrium itself: a correction with a force at rest moves it off y = 0,
-        # and the Hopf point is that of the moved equilibrium (Newton from y = 0)
-        y = y0
-        for _ in range(3):
-            y = y - jnp.linalg.solve(jax.jacfwd(f)(y), f(y))
-        J = jax.jacfwd(f)(y)
-        return jnp.max(jnp.real(jnp.linalg.eigvals(J))) / reg.omega
-
-    g = jax.vmap(growth)(reg.V)
-    r = jax.nn.relu(g + margin) ** 2
-    out = jnp.sum(r * reg.rest_stable) / jnp.maximum(1.0, jnp.sum(reg.rest_stable))
-    if reg.rest_unstable is None:
-        return out
-    # and beyond the Hopf point the shrinking unstable orbits point to, an unstable one: a
-    # correction free there can keep the equilibrium stable past it and turn the unstable
-    # branch back before it reaches zero amplitude
-    u = jax.nn.relu(margin - g) ** 2
-    return out + jnp.sum(u * reg.rest_unstable) / jnp.maximum(1.0, jnp.sum(reg.rest_unstable))
-
-
-def _work_per_amplitude2(force, y_unit, V, dt, amps, n):
-    """Net work per cycle over A^2 of ``force(y, drive)`` along the unit-amplitude orbit
-    shape ``y_unit`` (samples over one period, ``dt`` apart) scaled to each amplitude A in
-    ``amps``, at airspeed V: the describing-function energy balance."""
-    d = Drive.of(V)
-
-    def at(a):
-        F = jax.vmap(lambda y: force(a * y, d))(y_unit)
-        return jnp.sum(F * y_unit[:, n:2 * n]) * dt / a
-    return jax.vmap(at)(amps)
-
-
-def _aero_work_scale(model: UDE, reg: Regularity):
-    """The mechanistic model's aerodynamic damping work on the measured shapes at unit
-    amplitude (mean magnitude): the unit the energy penalties are measured in."""
-    n = model.mech.n_dof
-    B = getattr(model.mech, "base", model.mech).aero_damping
-
-    def one(y_unit, V, dt):
-        qd = y_unit[:, n:2 * n]
-        return jnp.abs(jnp.sum((qd @ B(V).T) * qd) * dt)
-    return jax.lax.stop_gradient(jnp.mean(jax.vmap(one)(reg.shapes, reg.shape_V,
-                                                         reg.shape_dt)))
-
-
-def _energy_shape_penalty(model: UDE, reg: Regularity):
-    """Against diagrams that snake in amplitude: the correction's net work per cycle along
-    each measured orbit's shape scaled to heave amplitude A, over A^2, must be concave in
-    A^2 (squared hinge on its second derivative in A^2 over an amplitude grid, in units of
-    the mechanistic model's aerodynamic work on the same shapes).
-
-    Why: with D(A^2; V) the net work per cycle over A^2 (the describing-function energy
-    balance), orbits sit at the roots of D. The mechanistic model's damping and aerodynamic
-    forces make D constant in A^2 and its stiffness does no net work, so the correction
-    decides the shape. A D concave in A^2 has at most two roots at each airspeed, an
-    unstable orbit and a stable one around it: the subcritical picture with one fold. A
-    network that bends D up and down between the measured amplitudes puts orbits at every
-    bend, which is what makes a diagram snake and isolas appear."""
-    work = lambda y, V, dt: _work_per_amplitude2(model.correction_force, y, V, dt,
-                                                 reg.energy_amps, model.mech.n_dof)
-    # every measured shape at its own airspeed and across the traced range, where nothing
-    # measured holds the correction (isolas grow there)
-    Vs = jnp.concatenate([reg.shape_V[:, None],
-                          jnp.broadcast_to(reg.V[::4], (reg.shape_V.size, reg.V[::4].size))],
-                         axis=1)                                    # (orbits, 1 + m/4)
-    D = jax.vmap(lambda y, V, dt: jax.vmap(lambda v: work(y, v, dt))(V))(
-        reg.shapes, Vs, reg.shape_dt).reshape(-1, reg.energy_amps.size)
-    S = _aero_work_scale(model, reg)
-    # second divided differences in u = (A / A_top)^2 on the amplitude grid (uniform in A,
-    # not in u, so the small orbits near the Hopf point are resolved too), times 1/16^2.
-    # (A grid reaching down to 1 % made the penalty dwell on the smallest amplitudes and
-    # loosened the fit to 3-6 % on the wind-tunnel data.)
-    u = (reg.energy_amps / reg.energy_amps[-1]) ** 2
-    s1 = (D[:, 1:] - D[:, :-1]) / (u[1:] - u[:-1])
-    d2 = 2 * (s1[:, 1:] - s1[:, :-1]) / (u[2:] - u[:-2]) / 256.0 / S
-    return jnp.mean(jax.nn.relu(d2) ** 2)
-
-
-def _energy_rising_penalty(model: UDE, reg: Regularity, margin: float = 0.025):
-    """Against branches that turn back in airspeed and against isolas: the whole model's
-    net work per cycle over A^2 (mechanistic forces and correction) along each measured
-    shape must grow with the airspeed, at every amplitude of the grid (from 1 % to 130 % of
-    the largest orbit), from half a span below the lowest measured airspeed to the end of
-    the traced range, a quarter span apart. Squared hinge on its rise across the measured
-    airspeeds' spread, which must be at least ``margin`` of the aerodynamic work scale. A
-    refined mechanistic model contributes its base model's forces.
-
-    Why: with D(A^2, V) rising in V, its zero set, where the orbits are, is one curve
-    V = g(A^2): a single branch, which cannot close on itself or turn back at one
-    amplitude. The measured branch says as much: its stable orbits grow and its unstable
-    ones shrink with V, both of which need dD/dV > 0 there. Far below the flutter speed the
-    aerodynamic damping grows with V and D falls (the quasi-steady model's does, on these
-    shapes, below about 18 m/s), so the grid starts half a span below the data."""
-    n = model.mech.n_dof
-    mech = getattr(model.mech, "base", model.mech)
-    total = lambda y, d: mech.force(y[:n], y[n:2 * n], d) + model.correction_force(y, d)
-    Vr = reg.rising_V
-    # down to 1 % of the largest orbit: the hooks a branch makes near its Hopf point
-    amps = jnp.concatenate([jnp.array([0.01, 0.02]) * reg.energy_amps[-1] / 1.3,
-                            reg.energy_amps])
-    D = jax.vmap(lambda y, dt: jax.vmap(
-        lambda v: _work_per_amplitude2(total, y, v, dt, amps, n))(Vr))(
-        reg.shapes, reg.shape_dt)                          # (orbits, airspeeds, amplitudes)
-    # dD/dV over the measured airspeeds' spread, in units of the aerodynamic work
-    rise = jnp.diff(D, axis=1) / jnp.diff(Vr)[None, :, None] * reg.v_span / _aero_work_scale(
-        model, reg)
-    return jnp.mean(jax.nn.relu(margin - rise) ** 2)
-
-
-def _regularity(model: UDE, reg: Regularity | None, rw):
-    w_lin, w_smooth = rw[:2]
-    w_rest = rw[2] if len(rw) > 2 else 0.0
-    w_energy = rw[3] if len(rw) > 3 else 0.0
-    w_rising = rw[4] if len(rw) > 4 else 0.0
-    if reg is None:
-        return 0.0
-    out = 0.0
-    if w_energy:
-        out = out + w_energy * _energy_shape_penalty(model, reg)
-    if w_rising:
-        out = out + w_rising * _energy_rising_penalty(model, reg)
-    if w_rest:
-        out = out + w_rest * _rest_penalty(model, reg)
-    if w_lin:
-        out = out + w_lin * _equilibrium_penalty(model, reg)
-    if w_smooth:
-        out = out + w_smooth * _smoothness_penalty(model, reg)
-    return out
+    return loss + penalty_sum(penalties, "equation", UDE(mech, corr), reg)
 
 
 def _simulate_with_monodromy(model, y0, T, drive, n, sub):
@@ -406,10 +194,13 @@ def _stability_indicator(system: str, M):
     return jnp.linalg.det(A)
 
 
-def _trajectory_loss(params, static, mech, data: TrainingData, sub: int, reg=None,
-                     rw=(0.0, 0.0)):
+def trajectory_loss(params, static, mech, data: TrainingData, sub: int, penalties=(),
+                    reg=None):
+    """One-period trajectories from the measured states against the measured orbits (the
+    paper's loss), plus the penalties that act in the trajectory stage."""
     model = UDE(mech, eqx.combine(params["corr"], static))
-    return _trajectory_error(model, data, sub) + _regularity(model, reg, rw)
+    return (_trajectory_error(model, data, sub)
+            + penalty_sum(penalties, "trajectory", model, reg))
 
 
 def _trajectory_error(model, data: TrainingData, sub: int):
@@ -422,9 +213,10 @@ def _trajectory_error(model, data: TrainingData, sub: int):
     return jnp.mean(jax.vmap(one)(data.ys, data.period, data.drive))
 
 
-def _periodic_objective(model, params, data: TrainingData, sub: int, weights):
+def _periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
     """Closed model orbits through the measured ones, with the measured stability."""
-    w_close, w_stab, margin = weights
+    w_close, w_stab, margin = cfg.closure_weight, cfg.stability_weight, cfg.stability_margin
+    sub = cfg.substeps
     n = data.ys.shape[1]
     autonomous = model.system == "flutter"
 
@@ -441,19 +233,12 @@ def _periodic_objective(model, params, data: TrainingData, sub: int, weights):
     return jnp.mean(jax.vmap(one)(data.ys, y0, T, data.drive, data.label))
 
 
-def _weight_penalty(corr_params):
-    """Mean square of the network's weight matrices (not biases): weight decay, which keeps
-    the correction smooth between the measured orbits."""
-    mats = [x for x in jax.tree_util.tree_leaves(corr_params)
-            if isinstance(x, jax.Array) and x.ndim == 2]
-    return sum(jnp.mean(m ** 2) for m in mats) / max(1, len(mats))
-
-
-def _periodic_loss(params, static, mech, data: TrainingData, sub: int, weights, reg=None):
+def periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg=None):
+    """Closed model orbits through the measured ones with the measured stability, plus the
+    penalties that act in the periodic stage."""
     model = UDE(mech, eqx.combine(params["corr"], static))
-    loss = _periodic_objective(model, params, data, sub, weights[:3])
-    return (loss + weights[3] * _weight_penalty(params["corr"])
-            + _regularity(model, reg, weights[4:8]))
+    return (_periodic_objective(model, params, data, cfg)
+            + penalty_sum(cfg.penalties, "periodic", model, reg))
 
 
 def _mech_leaves(mech):
@@ -476,9 +261,9 @@ def _mech_with(mech, sizes, base, scale, delta):
     return eqx.tree_at(_mech_leaves, mech, tuple(vals))
 
 
-def _mech_periodic_loss(params, mech, sizes, base, scale, data, sub, weights):
+def _mech_periodic_loss(params, mech, sizes, base, scale, data, cfg):
     model = UDE(_mech_with(mech, sizes, base, scale, params["delta"]))
-    return _periodic_objective(model, params, data, sub, weights)
+    return _periodic_objective(model, params, data, cfg)
 
 
 def refine_mechanistic(model: UDE, data: TrainingData, *, cfg: TrainConfig, progress=None):
@@ -495,9 +280,8 @@ def refine_mechanistic(model: UDE, data: TrainingData, *, cfg: TrainConfig, prog
     params = {"delta": jnp.zeros(base.size), "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
     if model.system == "flutter":
         params["dT"] = jnp.zeros(data.period.shape)
-    weights = (cfg.closure_weight, cfg.stability_weight, cfg.stability_margin)
     params, v = minimize(_mech_periodic_loss, params,
-                         (mech, sizes, base, scale, data, cfg.substeps, weights),
+                         (mech, sizes, base, scale, data, cfg),
                          adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
                          lr=cfg.learning_rate, progress=progress, stage="mechanistic")
     refined = _mech_with(mech, sizes, base, scale, params["delta"])
@@ -598,18 +382,15 @@ def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training
     info = {"training": training}
     Z, R = residual_forces(UDE(mech), data)
     params = {"corr": trainable}
-    rw = (cfg.linear_weight, cfg.smooth_weight, cfg.rest_weight, cfg.energy_weight,
-          cfg.rising_weight)
-    reg = regularity_points(data) if model.system == "flutter" and any(rw) else None
-    params, v = minimize(_equation_loss, params,
-                         (static, mech, jnp.asarray(Z), jnp.asarray(R), reg, rw),
+    reg = regularity_points(data) if cfg.needs_points() else None
+    params, v = minimize(equation_loss, params,
+                         (static, mech, jnp.asarray(Z), jnp.asarray(R), cfg.penalties, reg),
                          adam_steps=cfg.equation_steps, lbfgs_steps=cfg.equation_lbfgs_steps,
-                         lr=1e-2,
-                         progress=progress, stage="equation")
+                         lr=1e-2, progress=progress, stage="equation")
     info["equation_loss"] = v
     if training == "trajectory":
-        params, v = minimize(_trajectory_loss, params,
-                             (static, mech, data, cfg.substeps, reg, rw),
+        params, v = minimize(trajectory_loss, params,
+                             (static, mech, data, cfg.substeps, cfg.penalties, reg),
                              adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
                              lr=cfg.learning_rate, progress=progress, stage="trajectory")
     elif training == "periodic":
@@ -618,10 +399,7 @@ def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training
         params = {"corr": params["corr"], "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
         if model.system == "flutter":
             params["dT"] = jnp.zeros(data.period.shape)
-        weights = (cfg.closure_weight, cfg.stability_weight, cfg.stability_margin,
-                   cfg.weight_decay) + rw
-        params, v = minimize(_periodic_loss, params,
-                             (static, mech, data, cfg.substeps, weights, reg),
+        params, v = minimize(periodic_loss, params, (static, mech, data, cfg, reg),
                              adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
                              lr=cfg.learning_rate, progress=progress, stage="periodic")
     elif training != "equation":

@@ -24,6 +24,8 @@ import shlex
 import sys
 import time
 
+from ._cli_options import add_data_arguments, add_fit_arguments, fit_options
+
 _EXIT_USAGE = 2
 
 
@@ -36,52 +38,6 @@ class UsageError(Exception):
     pass
 
 
-def _positive_int(name):
-    def conv(s):
-        try:
-            v = int(s)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be an integer, not {s!r}") from None
-        if v < 1:
-            raise argparse.ArgumentTypeError(f"{name} must be at least 1, not {v}")
-        return v
-    return conv
-
-
-def _finite_float(name):
-    def conv(s):
-        try:
-            v = float(s)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a number, not {s!r}") from None
-        if v != v or v in (float("inf"), float("-inf")):
-            raise argparse.ArgumentTypeError(f"{name} must be finite, not {s!r}")
-        return v
-    return conv
-
-
-def _nonnegative_float(name):
-    finite = _finite_float(name)
-
-    def conv(s):
-        v = finite(s)
-        if v < 0:
-            raise argparse.ArgumentTypeError(f"{name} must not be negative, not {s!r}")
-        return v
-    return conv
-
-
-def _positive_float(name):
-    finite = _finite_float(name)
-
-    def conv(s):
-        v = finite(s)
-        if v <= 0:
-            raise argparse.ArgumentTypeError(f"{name} must be positive, not {s!r}")
-        return v
-    return conv
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="ude-fit", description="Fit mechanistic and universal-differential-equation "
                 "models to logged limit cycles, trace their bifurcation diagrams, and report.")
@@ -91,64 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     f = sub.add_parser("fit", help="fit the mechanistic model and a UDE; write metrics, "
                        "report, diagrams and the fitted models")
-    f.add_argument("data", nargs="+", metavar="DATA",
-                   help="campaign HDF5 files, lee2020 .mat files, or folders of them")
-    f.add_argument("--system", required=True, choices=("flutter", "oscillator"))
-    f.add_argument("--approximator", default="nn", choices=("nn", "gp"),
-                   help="the correction: a neural network (default) or a Gaussian process")
-    f.add_argument("--training", default="periodic", choices=("trajectory", "periodic"),
-                   help="NN loss: one-period trajectories from the measured states (the "
-                   "paper's) or closed periodic orbits with stability labels (default)")
-    f.add_argument("--mechanistic", default="equation", choices=("equation", "periodic"),
-                   help="mechanistic identification: least squares on the equation error "
-                   "(default), or that refined by output error on the periodic orbits")
-    f.add_argument("--starts", type=_positive_int("--starts"), default=5,
-                   help="random starts; the best adequate one is kept (default 5)")
-    f.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    f.add_argument("--width", type=_positive_int("--width"), default=12,
-                   help="hidden units per layer of the NN (default 12)")
-    f.add_argument("--depth", type=_positive_int("--depth"), default=2,
-                   help="hidden layers of the NN (default 2)")
-    f.add_argument("--weight-decay", type=_nonnegative_float("--weight-decay"), default=0.0,
-                   metavar="W", help="periodic training: penalty on the mean square network "
-                   "weight, for smoother corrections on few noisy points (default 0)")
-    f.add_argument("--equilibrium-penalty", type=_nonnegative_float("--equilibrium-penalty"),
-                   metavar="W", help="aerofoil: penalty on the correction's value and slope at "
-                   "the equilibrium over the airspeed range, which holds the Hopf point (default 0)")
-    f.add_argument("--smoothness-penalty", type=_nonnegative_float("--smoothness-penalty"),
-                   metavar="W", help="aerofoil: penalty on the correction's curvature in "
-                   "airspeed and amplitude, against diagrams that snake (default 0)")
-    f.add_argument("--rest-stability", type=_nonnegative_float("--rest-stability"),
-                   default=0.0, metavar="W", help="aerofoil: penalty on any growth rate of the "
-                   "equilibrium at the airspeeds where the data shows it stable (up to the "
-                   "highest unstable orbit's), so the correction cannot move the Hopf point "
-                   "below the measured orbits, and on any decay rate beyond the Hopf point "
-                   "the shrinking unstable orbits point to (default 0)")
-    f.add_argument("--energy-shape", type=_nonnegative_float("--energy-shape"),
-                   default=0.0, metavar="W", help="aerofoil: penalty on a correction whose net "
-                   "work per cycle over amplitude squared is not concave in amplitude squared "
-                   "(along the measured orbits' shapes): at most one unstable and one stable "
-                   "orbit per airspeed, against diagrams that snake in amplitude (default 0)")
-    f.add_argument("--energy-rising", type=_nonnegative_float("--energy-rising"),
-                   default=0.0, metavar="W", help="aerofoil: penalty on a model whose net work "
-                   "per cycle over amplitude squared (mechanistic forces and correction, along "
-                   "the measured orbits' shapes) does not rise with the airspeed, from just "
-                   "below the measured airspeeds up: the orbits then lie on one curve "
-                   "V(amplitude), against branches that turn back and isolas (default 0)")
-    f.add_argument("--param-scale", type=_positive_float("--param-scale"), default=1.0,
-                   metavar="F", help="the network's parameter input is standardised by F times "
-                   "its spread in the data; larger F, slower variation with it (default 1)")
-    f.add_argument("--param-dependence", default="input", choices=("input", "polynomial"),
-                   help="how the NN correction depends on the bifurcation parameter: as an "
-                   "input like the states (default), or as a polynomial in it "
-                   "(--param-degree) with state-dependent coefficients, which cannot wiggle "
-                   "in it (the airspeed enters quasi-steady aerodynamics as V and V^2)")
-    f.add_argument("--param-degree", type=_positive_int("--param-degree"), default=2,
-                   metavar="D", help="--param-dependence polynomial: the degree (default 2)")
-    f.add_argument("--reference-hopf", type=_finite_float("--reference-hopf"), metavar="V",
-                   help="known Hopf airspeed (m/s) for the error figures")
-    f.add_argument("--reference-fold", type=_finite_float("--reference-fold"), metavar="V",
-                   help="known fold airspeed (m/s) for the error figures")
+    add_data_arguments(f)
+    add_fit_arguments(f)
     f.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     f.add_argument("--quiet", action="store_true", help="no progress on the terminal")
 
@@ -161,9 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", metavar="DIR", help="output folder (default: the model's folder)")
 
     from ._cli_loop import add_parsers
-    add_parsers(sub, (_positive_int, _nonnegative_float))
+    add_parsers(sub)
     from ._cli_pipeline import add_parser as add_pipeline
-    add_pipeline(sub, (_positive_int, _finite_float, _nonnegative_float, _positive_float))
+    add_pipeline(sub)
     return p
 
 
@@ -262,51 +162,24 @@ def _write_json(path, obj):
 
 def cmd_fit(args, argv) -> int:
     from ._data import load
-    from ._fit import FitOptions, diagram_to_dict, fit
+    from ._fit import diagram_to_dict, fit
     from ._io import save_model
-    from ._train import TrainConfig
 
+    try:
+        opts = fit_options(args)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     out = _out_dir(args.out)
     ds = load(args.data, args.system)
-    reference = {k: v for k, v in (("hopf", args.reference_hopf),
-                                   ("fold", args.reference_fold)) if v is not None}
-    if reference and args.system != "flutter":
-        raise UsageError("--reference-hopf/--reference-fold apply to --system flutter only")
-    if args.system != "flutter" and (args.equilibrium_penalty or args.smoothness_penalty
-                                     or args.rest_stability or args.energy_shape
-                                     or args.energy_rising):
-        raise UsageError("--equilibrium-penalty/--smoothness-penalty/--rest-stability/"
-                         "--energy-shape/--energy-rising apply to --system flutter only")
-    if args.approximator != "nn" and (args.equilibrium_penalty or args.smoothness_penalty
-                                      or args.rest_stability or args.energy_shape
-                                      or args.energy_rising or args.param_scale != 1.0):
-        raise UsageError("--equilibrium-penalty/--smoothness-penalty/--rest-stability/"
-                         "--energy-shape/--energy-rising/"
-                         "--param-scale apply to --approximator nn only")
-    if args.approximator != "nn" and args.param_dependence != "input":
-        raise UsageError("--param-dependence polynomial applies to --approximator nn only")
-    opts = FitOptions(system=args.system, approximator=args.approximator,
-                      training=args.training, starts=args.starts, seed=args.seed,
-                      mechanistic=args.mechanistic,
-                      train=TrainConfig(width=args.width, depth=args.depth,
-                                        weight_decay=args.weight_decay,
-                                        linear_weight=args.equilibrium_penalty,
-                                        smooth_weight=args.smoothness_penalty,
-                                        param_scale=args.param_scale,
-                                        rest_weight=args.rest_stability,
-                                        energy_weight=args.energy_shape,
-                                        rising_weight=args.energy_rising,
-                                        param_dependence=args.param_dependence,
-                                        param_degree=args.param_degree))
     progress = _Progress(args.quiet)
     progress._say(f"{len(ds)} orbits loaded ({args.system}); fitting")
-    res = fit(ds, opts, reference=reference or None, progress=progress)
+    res = fit(ds, opts, progress=progress)
 
     metrics = {**res.metrics, "version": _version(),
                "written": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                "command": "ude-fit " + " ".join(shlex.quote(a) for a in argv),
-               "inputs": _inputs(args.data), "options": opts.to_dict()}
-    meta = dict(options=opts.to_dict(), sources=list(ds.sources), scales=res.scales,
+               "inputs": _inputs(args.data), "options": opts.to_json()}
+    meta = dict(options=opts.to_json(), sources=list(ds.sources), scales=res.scales,
                 ranges=res.ranges, version=_version(), written=metrics["written"])
     save_model(os.path.join(out, "mechanistic.eqx"), res.mechanistic, role="mechanistic",
                diagram=diagram_to_dict(res.diagrams["mechanistic"]), **meta)
