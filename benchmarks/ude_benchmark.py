@@ -23,6 +23,9 @@ import sys
 import tempfile
 import time
 
+import jax  # noqa: E402
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
@@ -34,7 +37,7 @@ def _child(spec: dict) -> dict:
     """Run one fit in this (fresh) process; returns its figures."""
     t_import = time.perf_counter()
     from ude_fit import FitOptions, TrainConfig, fit, load
-    from ude_fit._continuation import trace_flutter
+    from ude_fit.analysis.continuation import trace_flutter
     ds = load([spec["data"]], "flutter")
     cfg = TrainConfig(**spec.get("train", {}))
     opts = FitOptions("flutter", approximator=spec["approximator"], training=spec["training"],

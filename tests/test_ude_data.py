@@ -16,8 +16,14 @@ import pytest
 import scipy.io
 
 from tests import ude_fixtures as F
-from ude_fit._data import (K, DataError, Orbit, OrbitDataset, evaluate, fourier_fit, load,
-                           load_campaign, load_lee, refine_frequency, shift_phase)
+from ude_fit._fourier import evaluate, fourier_fit, K, refine_frequency, shift_phase
+from ude_fit.data.campaign import load_campaign
+from ude_fit.data.lee import load_lee
+from ude_fit.data.load import load
+from ude_fit.data.orbit import DataError, Orbit, OrbitDataset
+
+import jax  # noqa: E402
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 LEE_STABLE_V = [20.7, 21.5, 22.4, 23.2]                      # README table, m/s
 LEE_UNSTABLE_V = [20.7, 21.6, 22.4, 23.3, 24.1, 25.0, 25.8]

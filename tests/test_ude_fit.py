@@ -16,10 +16,13 @@ import pytest
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import (DataError, Diverged, FitOptions, TrainConfig, fit, hopf_point, load,
                      load_model)
-from ude_fit import _fit as fit_module
+from ude_fit import fitting as fit_module
 from ude_fit import cli
-from ude_fit._penalties import EnergyRising, WeightDecay
-from ude_fit._train import minimize
+from ude_fit.training.penalties import EnergyRising, WeightDecay
+from ude_fit.training.optimise import minimize
+
+import jax  # noqa: E402
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 AIRSPEEDS = (17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0, 23.6)
 
@@ -170,8 +173,8 @@ def test_regularity_penalties_vanish_for_no_correction_and_see_a_linear_one():
     import jax
     import jax.numpy as jnp
     from ude_fit import UDE, flutter_qs
-    from ude_fit._models import Scaling
-    from ude_fit._penalties import EquilibriumPenalty, Regularity, SmoothnessPenalty
+    from ude_fit.models.corrections import Scaling
+    from ude_fit.training.penalties import EquilibriumPenalty, Regularity, SmoothnessPenalty
 
     class Poly(eqx.Module):
         c: tuple = eqx.field(static=True)
@@ -219,7 +222,7 @@ def test_rest_stability_penalty_sees_only_an_equilibrium_unstable_where_labelled
     import equinox as eqx
     import jax.numpy as jnp
     from ude_fit import UDE, flutter_qs
-    from ude_fit._penalties import Regularity, RestStability
+    from ude_fit.training.penalties import Regularity, RestStability
     _rest_penalty = RestStability(1.0).value
 
     V = jnp.linspace(15.0, 28.0, 14)
@@ -247,7 +250,7 @@ def test_rest_stability_penalty_sees_only_an_equilibrium_unstable_where_labelled
 
 
 def test_hopf_from_unstable_orbits_is_where_their_amplitude_squared_reaches_zero():
-    from ude_fit._penalties import _hopf_from_unstable
+    from ude_fit.training.penalties import _hopf_from_unstable
 
     P = np.array([20.7, 22.0, 24.0, 25.0, 25.8, 21.0])
     amp = np.sqrt(np.maximum(0.0, 4e-4 * (26.3 - P)))
@@ -263,7 +266,7 @@ def test_polynomial_param_correction_is_polynomial_in_the_parameter_and_reloads(
     import jax
     import jax.numpy as jnp
     from ude_fit import UDE, flutter_qs, save_model
-    from ude_fit._models import PolynomialParamCorrection, Scaling
+    from ude_fit.models.corrections import PolynomialParamCorrection, Scaling
 
     k1, k2, k3 = jax.random.split(jax.random.PRNGKey(3), 3)
     sc = Scaling(jax.random.normal(k1, (5,)), 1.0 + jnp.abs(jax.random.normal(k2, (5,))),
@@ -329,7 +332,7 @@ def test_diffrax_trajectory_equals_the_shooting_map():
     import jax.numpy as jnp
 
     from ude_fit import UDE, Drive, flutter_qs
-    from ude_fit._flow import diffrax_samples, rk4_orbit
+    from ude_fit.models.flow import diffrax_samples, rk4_orbit
     model, drive = UDE(flutter_qs()), Drive.of(20.0)
     y0 = jnp.array([0.01, 0.02, 0.0, 0.1])
     _, ys = rk4_orbit(model, y0, 0.42, drive, 32 * 4)
@@ -341,7 +344,7 @@ def test_trajectory_training_lowers_the_trajectory_error(tmp_path):
     import jax
 
     from ude_fit import UDE, identify, train_ude, training_data
-    from ude_fit._train import _trainable_spec, new_correction, trajectory_loss
+    from ude_fit.training.train import _trainable_spec, new_correction, trajectory_loss
     write_truth_campaign(tmp_path / "f.h5", "flutter", airspeeds=(18.0, 21.0, 23.6))
     data = training_data(load([tmp_path / "f.h5"], "flutter"))
     mech, _ = identify(data, "flutter")
@@ -364,7 +367,7 @@ def test_a_point_at_a_model_fold_takes_the_stability_of_its_side(monkeypatch):
     nearest traced orbit there can lie on the stable side, and must not relabel the point."""
     from types import SimpleNamespace
 
-    from ude_fit import _metrics
+    from ude_fit.analysis import metrics as _metrics
 
     branch = SimpleNamespace(param=np.array([20.70, 20.62, 20.70]),
                              amplitude=np.array([0.030, 0.027, 0.024]),
@@ -397,8 +400,8 @@ def test_a_closed_branch_is_traced_once_and_its_folds_counted_once():
     is the circle x^2 + (p - 20)^2 = 1 in (state, parameter): two folds, at p = 19 and 21."""
     from types import SimpleNamespace
 
-    from ude_fit import _continuation as cont
-    from ude_fit._metrics import locations
+    from ude_fit.analysis import continuation as cont
+    from ude_fit.analysis.metrics import locations
 
     class Circle:
         par_index = 1
@@ -431,7 +434,7 @@ def test_data_scatter_is_the_residual_standard_deviation_about_quadratics():
     comes back whole, its sum of squares divided by the degrees of freedom left (4 + 7
     points, 3 + 3 taken by the two fits), not by the number of points."""
     from ude_fit import Orbit, OrbitDataset
-    from ude_fit._fit import data_scatter
+    from ude_fit.analysis.adequacy import data_scatter
 
     def orbit(V, A, stable):
         c = np.zeros((2, 15))
@@ -453,7 +456,7 @@ def test_data_scatter_is_the_residual_standard_deviation_about_quadratics():
 def test_a_start_that_snakes_through_the_points_does_not_set_the_bar():
     """Within twice the best start's error: the best *credible* start's. A start with 11
     folds fits the points closer than a smooth diagram can, and is not adequate itself."""
-    from ude_fit._fit import judge_starts
+    from ude_fit.analysis.adequacy import judge_starts
 
     mech = {"branch_rms": 0.15, "missed": 3, "folds": [15.8], "isola_folds": []}
 
@@ -478,7 +481,7 @@ def test_energy_shape_penalty_sees_only_work_convex_in_amplitude_squared():
     import equinox as eqx
     import jax.numpy as jnp
     from ude_fit import UDE, flutter_qs
-    from ude_fit._penalties import EnergyShape, Regularity
+    from ude_fit.training.penalties import EnergyShape, Regularity
 
     class Damping(eqx.Module):
         c: tuple = eqx.field(static=True)
@@ -514,7 +517,7 @@ def test_energy_rising_penalty_sees_energy_input_falling_with_airspeed():
     import equinox as eqx
     import jax.numpy as jnp
     from ude_fit import UDE, flutter_qs
-    from ude_fit._penalties import EnergyRising, Regularity
+    from ude_fit.training.penalties import EnergyRising, Regularity
 
     class SpeedDamping(eqx.Module):
         k: float = eqx.field(static=True)
@@ -557,7 +560,7 @@ def test_aerofoil_data_with_both_stabilities_needs_a_fold():
     adequate on such data, however close it fits; without that need (only one stability
     measured) the same start is."""
     from ude_fit import Orbit, OrbitDataset
-    from ude_fit._fit import judge_starts, needs_fold
+    from ude_fit.analysis.adequacy import judge_starts, needs_fold
 
     mech = {"branch_rms": 0.15, "missed": 0, "folds": [15.8], "isola_folds": []}
     no_fold = {"branch_rms": 0.02, "missed": 0, "folds": [], "isola_folds": []}
@@ -585,8 +588,8 @@ def test_energy_rising_acts_in_the_periodic_stage(tmp_path):
     import jax.numpy as jnp
 
     from ude_fit import UDE, identify, training_data
-    from ude_fit._penalties import regularity_points
-    from ude_fit._train import periodic_loss
+    from ude_fit.training.penalties import regularity_points
+    from ude_fit.training.train import periodic_loss
 
     class SpeedDamping(eqx.Module):
         k: float = eqx.field(static=True)

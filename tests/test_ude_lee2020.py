@@ -17,6 +17,9 @@ import pytest
 
 from ude_fit import cli
 
+import jax  # noqa: E402
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
+
 
 REGULARISED = ["--rest-stability", "30", "--energy-shape", "3", "--energy-rising", "10000"]
 
