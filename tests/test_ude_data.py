@@ -361,7 +361,8 @@ def test_bad_inputs_are_one_line_data_errors(tmp_path, flutter_truth, oscillator
     assert "not a lee2020" in _one_line_error([str(other_mat)])
     empty_dir = tmp_path / "empty"
     empty_dir.mkdir()
-    assert "without .mat files" in _one_line_error([str(empty_dir)])
+    msg = _one_line_error([str(empty_dir)])                # names both kinds it looked for
+    assert "campaign files (.h5, .hdf5)" in msg and ".mat files" in msg
 
     assert "load one system" in _one_line_error([str(flutter_truth[0]), str(oscillator_truth[0])])
     assert "oscillator was asked for" in _one_line_error([str(flutter_truth[0])], "oscillator")
@@ -382,3 +383,14 @@ def test_a_campaign_without_complete_ok_points_is_refused(tmp_path, oscillator_t
         f["points"][names[-1]].attrs["complete"] = False     # cut short by a kill
     assert len(load_campaign(path)) == 0                     # a campaign just started is fine
     assert "no complete points" in _one_line_error([str(path)])
+
+
+def test_one_fourier_convention_harmonics_inverts_evaluate():
+    """Coefficients are the last axis everywhere: harmonics of the samples of a series
+    give back its coefficients, and amplitude reads the first harmonic from them."""
+    from ude_fit._fourier import amplitude, harmonics
+    c = np.random.default_rng(0).normal(size=(3, 2 * K + 1))
+    phi = 2 * np.pi * np.arange(32) / 32
+    samples = evaluate(c, phi).T                         # (32 phases, 3 coordinates)
+    np.testing.assert_allclose(harmonics(samples), c, atol=1e-12)
+    np.testing.assert_allclose(amplitude(c), np.hypot(c[:, 1], c[:, K + 1]))

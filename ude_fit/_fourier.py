@@ -1,8 +1,12 @@
-"""The one Fourier basis of the project: every orbit is a truncated Fourier series over one
+"""The one Fourier basis of ude_fit: every orbit is a truncated Fourier series over one
 period, K = 7 harmonics, coefficients in the order a0, a1..a7, b1..b7 (15 numbers per
 coordinate):
 
     q(phi) = a0 + sum_k a_k cos(k phi) + b_k sin(k phi),    phi = 2 pi f t.
+
+One convention everywhere: the coefficients are the LAST axis of an array ((..., 2K + 1));
+:func:`evaluate` takes them so, :func:`harmonics` and :func:`fourier_fit` return them so,
+and :func:`amplitude` reads the first harmonic from them.
 
 Noise is removed as the paper does: by least squares over the whole raw record (many
 periods) at the orbit's frequency ("Fourier averaging").
@@ -10,6 +14,8 @@ periods) at the orbit's frequency ("Fourier averaging").
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import minimize_scalar
 
@@ -42,6 +48,34 @@ def evaluate(coeffs, phi) -> np.ndarray:
     c = np.asarray(coeffs, dtype=float)
     kk = (c.shape[-1] - 1) // 2
     return c @ _basis(np.atleast_1d(phi), kk)
+
+
+def amplitude(coeffs):
+    """The first harmonic's amplitude hypot(a1, b1) of coefficients (..., 2K + 1)."""
+    c = np.asarray(coeffs, dtype=float)
+    kk = (c.shape[-1] - 1) // 2
+    return np.hypot(c[..., 1], c[..., kk + 1])
+
+
+def harmonics(samples, k_max: int = K):
+    """Coefficients (..., 2 k_max + 1) of ``samples`` uniformly spaced over one period
+    along axis 0 (numpy or jax arrays): the exact inverse of sampling a series of at most
+    ``k_max`` harmonics at more than 2 k_max points."""
+    xp = jnp if isinstance(samples, jax.Array) else np
+    n = samples.shape[0]
+    phi = 2 * np.pi * np.arange(n) / n
+    k = np.arange(1, k_max + 1)
+    C = np.cos(np.outer(phi, k))
+    S = np.sin(np.outer(phi, k))
+    a0 = xp.mean(samples, axis=0)
+    a = 2.0 / n * xp.tensordot(C.T, samples, axes=1)
+    b = 2.0 / n * xp.tensordot(S.T, samples, axes=1)
+    return xp.moveaxis(xp.concatenate([a0[None], a, b], axis=0), 0, -1)
+
+
+def first_harmonic_amplitude(samples) -> float:
+    """The first harmonic's amplitude of samples over one period (axis 0)."""
+    return float(amplitude(harmonics(np.asarray(samples), 1)))
 
 
 def shift_phase(coeffs, delta: float) -> np.ndarray:

@@ -26,8 +26,7 @@ from .analysis.adequacy import data_scatter, fold_count, judge_starts, needs_fol
 from .analysis.diagram import _evaluate, diagram_ranges
 from .data.estimates import estimate_from_data
 from .data.orbit import DataError, OrbitDataset
-from .models.mechanistic import duffing7, flutter_qs
-from .models.refined import parameters_of_refined
+from .models.mechanistic import model_class
 from .models.ude import UDE
 from .training.gp import fit_gp
 from .training.identify import TrainingData, augment, identify, residual_forces, training_data
@@ -62,17 +61,6 @@ def _relative_noise(ds: OrbitDataset) -> float | None:
     return float(np.median(r)) if r.size else None
 
 
-def _unphysical(mech) -> str:
-    """Names of identified damping/stiffness values that no passive structure has."""
-    names = ("c_h", "c_alpha", "k_h", "k_alpha") if mech.system == "flutter" else ()
-    bad = [f"{n} = {float(getattr(mech, n)):.4g}" for n in names if float(getattr(mech, n)) <= 0]
-    return ", ".join(bad)
-
-
-def nominal_mechanistic(system: str):
-    return flutter_qs() if system == "flutter" else duffing7()
-
-
 def _train_start(mech_model, data: TrainingData, opts: FitOptions, k: int, key, progress):
     if opts.approximator == "nn":
         return train_ude(mech_model, data, key=key, cfg=opts.train, training=opts.training,
@@ -105,15 +93,15 @@ def identify_mechanistic(data: TrainingData, system: str, *, bootstrap: int = 0,
     unphysical (recorded in the returned info)."""
     mech, ident = identify(data, system, bootstrap=bootstrap, seed=seed)
     ident["method"] = "equation error (least squares)"
-    bad = _unphysical(mech)
+    bad = mech.unphysical()
     if bad:
         # equation error on noisy derivatives can land on negative damping or stiffness,
         # which no passive structure has: the design values stand in (and it is recorded)
         ident["equation_estimate_rejected"] = bad
         ident["equation_parameters"] = ident["parameters"]
-        mech = nominal_mechanistic(system)
+        mech = model_class(system).nominal()
         ident["method"] = "design values (the least-squares estimate was unphysical)"
-        ident["parameters"] = {f: float(getattr(mech, f)) for f in mech.fitted}
+        ident["parameters"] = mech.parameters()
     return mech, ident
 
 
@@ -147,8 +135,7 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
             progress=(lambda **kw: say(event="train", start=0, **kw)) if progress else None)
         ident["method"] += ", then periodic-orbit output error"
         ident["start_parameters"] = start_params
-        ident["parameters"] = {f: float(getattr(mech_model.mech, f))
-                               for f in mech_model.mech.fitted}
+        ident["parameters"] = mech_model.mech.parameters()
         ident["periodic_loss"] = info["loss"]
     return _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start, ident,
                    verbose=progress is not None)
@@ -157,9 +144,7 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
 def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
             ident=None, verbose: bool = False) -> FitResult:
     if ident is None:
-        ident = {"method": "given", "parameters": parameters_of_refined(mech_model.mech)
-                 if hasattr(mech_model.mech, "added") else
-                 {f: float(getattr(mech_model.mech, f)) for f in mech_model.mech.fitted},
+        ident = {"method": "given", "parameters": mech_model.mech.parameters(),
                  "std_error": {}}
     data = augment(data, mech_model.mech)
     scales = np.asarray(data.y_scale)

@@ -18,7 +18,7 @@ import numpy as np
 
 from .data.orbit import DataError
 from .models.corrections import MLPCorrection, PolynomialParamCorrection, Scaling
-from .models.mechanistic import duffing7, flutter_qs, parameters_of
+from .models.mechanistic import SYSTEMS, parameters_of
 from .models.refined import describe, refined
 from .models.ude import UDE
 from .training.gp import GPCorrection
@@ -81,7 +81,7 @@ def save_model(path, model: UDE, **meta) -> None:
     """Write ``model`` and JSON-able ``meta`` (options, scales, ranges, diagrams...) to ``path``."""
     mech = model.mech
     header = {"format": MAGIC, "format_version": FORMAT_VERSION, "version": _version(),
-              "system": model.system, "mechanistic": parameters_of(getattr(mech, "base", mech)),
+              "system": model.system, "mechanistic": parameters_of(mech.base),
               "effects": describe(mech),
               "correction": _correction_header(model.correction), **meta}
     buf = io.BytesIO()
@@ -119,12 +119,9 @@ def load_model(path) -> tuple[UDE, dict]:
         raise DataError(f"{path}: model file format {header.get('format_version')} "
                         f"(this ude_fit reads {FORMAT_VERSION})")
     system = header.get("system")
-    if system == "flutter":
-        mech = flutter_qs(**header["mechanistic"])
-    elif system == "oscillator":
-        mech = duffing7(**header["mechanistic"])
-    else:
+    if system not in SYSTEMS:
         raise DataError(f"{path}: unknown system {system!r} in the model file")
+    mech = SYSTEMS[system].nominal(**header["mechanistic"])
     if header.get("effects"):
         try:
             mech = refined(mech, header["effects"])

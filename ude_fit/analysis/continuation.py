@@ -30,7 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.optimize import brentq
 
-from ..models.flow import first_harmonic_amplitude, rk4_orbit
+from .._fourier import first_harmonic_amplitude
+from ..models.flow import rk4_orbit
 from ..models.mechanistic import Drive
 from ..models.ude import UDE
 

@@ -23,9 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._fourier import K, harmonics
 from ..data.orbit import OrbitDataset
-from ..models.flow import harmonics
-from ..models.mechanistic import K_HARMONICS
 from .continuation import Branch, orbit_at, same_fold
 
 
@@ -33,7 +32,7 @@ from .continuation import Branch, orbit_at, same_fold
 def _series(coeffs):
     """(n_coord, 15) -> complex (n_coord, K) with x = sum Re(C_k e^{i k phi})."""
     c = np.asarray(coeffs, float)
-    return c[:, 1:K_HARMONICS + 1] - 1j * c[:, K_HARMONICS + 1:], c[:, 0]
+    return c[:, 1:K + 1] - 1j * c[:, K + 1:], c[:, 0]
 
 
 def aligned_rms(model_coeffs, data_coeffs, scale) -> float:
@@ -41,7 +40,7 @@ def aligned_rms(model_coeffs, data_coeffs, scale) -> float:
     (grid of 720 shifts, then a parabolic refinement); all coordinates together."""
     Cm, dm = _series(model_coeffs)
     Cd, dd = _series(data_coeffs)
-    k = np.arange(1, K_HARMONICS + 1)
+    k = np.arange(1, K + 1)
     w = 1.0 / np.asarray(scale, float)[:, None]
 
     def err(s):
@@ -70,7 +69,7 @@ def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> dict:
     params = [o.parameter for o in ds.orbits]
     fold_tol = FOLD_TOLERANCE * (max(params) - min(params))
     n_pos = model.mech.n_dof
-    pos_scale = np.array([max(np.hypot(o.coeffs[i][1], o.coeffs[i][K_HARMONICS + 1])
+    pos_scale = np.array([max(np.hypot(o.coeffs[i][1], o.coeffs[i][K + 1])
                               for o in ds.orbits) for i in range(n_pos)])
     points = []
     for o in ds.orbits:
@@ -82,7 +81,7 @@ def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> dict:
             rec.update(model=None, error=None, trajectory=None, missed=True)
         else:
             e = abs(sol["amplitude"] - o.amplitude) / a_max
-            hc = np.asarray(harmonics(sol["samples"][:, :n_pos])).T    # (n_pos, 15)
+            hc = np.asarray(harmonics(sol["samples"][:, :n_pos]))      # (n_pos, 15)
             tr = aligned_rms(hc, np.asarray(o.coeffs)[:n_pos], pos_scale)
             rec.update(model=sol["amplitude"], error=e, trajectory=tr, missed=False,
                        model_stable=sol["stable"])

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..analysis.diagram import _evaluate
 from ..data.orbit import OrbitDataset
-from ..fitting import _unphysical, fit, identify_mechanistic, prepare
+from ..fitting import fit, identify_mechanistic, prepare
 from ..models.library import LIBRARY, STRUCTURAL, effect
 from ..models.refined import describe
 from ..models.ude import UDE
@@ -95,7 +95,7 @@ def _identify(data, system, added, *, seed, bootstrap):
     ident["method"] = "equation error (least squares)"
     if added:
         ident["effects"] = [k for k, _ in added]
-    bad = _unphysical(getattr(mech, "base", mech))
+    bad = mech.unphysical()
     if bad:
         ident["unphysical"] = bad
     return mech, ident

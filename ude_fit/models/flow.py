@@ -1,4 +1,4 @@
-"""Fixed-step flows of a model over one period (the shooting map) and orbit harmonics.
+"""Fixed-step flows of a model over one period (the shooting map).
 
 A fixed number of classical Runge-Kutta steps per period makes the discrete
 flow map a smooth function of the initial state, the period and the parameter,
@@ -16,9 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .mechanistic import Drive, K_HARMONICS
+from .mechanistic import Drive
 from .ude import UDE
-
 
 
 def rk4_orbit(model: UDE, y0, T, drive: Drive, n: int):
@@ -37,43 +36,6 @@ def rk4_orbit(model: UDE, y0, T, drive: Drive, n: int):
     yT, ys = jax.lax.scan(step, y0, jnp.arange(n))
     return yT, ys
 
-
-def harmonics(samples, K: int = K_HARMONICS):
-    """Fourier coefficients (a0, a1..aK, b1..bK) of uniformly spaced samples over one period.
-
-    ``samples`` has the period along axis 0; works for numpy and jax arrays.
-    """
-    xp = jnp if isinstance(samples, jax.Array) else np
-    n = samples.shape[0]
-    phi = 2 * np.pi * np.arange(n) / n
-    k = np.arange(1, K + 1)
-    C = np.cos(np.outer(phi, k))
-    S = np.sin(np.outer(phi, k))
-    a0 = xp.mean(samples, axis=0)
-    a = 2.0 / n * xp.tensordot(C.T, samples, axes=1)
-    b = 2.0 / n * xp.tensordot(S.T, samples, axes=1)
-    return xp.concatenate([a0[None], a, b], axis=0)
-
-
-def first_harmonic_amplitude(samples) -> float:
-    c = harmonics(np.asarray(samples), 1)
-    return float(np.hypot(c[1], c[2]))
-
-
-def evaluate_series(coeffs, phi):
-    """q(phi) from coefficients (15,) or (15, m); phi any shape."""
-    coeffs = np.asarray(coeffs)
-    K = (coeffs.shape[0] - 1) // 2
-    phi = np.asarray(phi)[..., None]
-    k = np.arange(1, K + 1)
-    c = np.cos(phi * k)
-    s = np.sin(phi * k)
-    if coeffs.ndim == 1:
-        return coeffs[0] + (c * coeffs[1:K + 1]).sum(-1) + (s * coeffs[K + 1:]).sum(-1)
-    return coeffs[0] + c @ coeffs[1:K + 1] + s @ coeffs[K + 1:]
-
-
-# ---- trajectories through diffrax ------------------------------------------------------------
 
 class ClassicalRK4(diffrax.AbstractERK):
     """The classical 4-stage Runge-Kutta method as a diffrax solver (fixed steps only: its

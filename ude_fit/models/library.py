@@ -32,7 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .mechanistic import FLUTTER_NOMINAL, K_HARMONICS
+from .._fourier import K
+from .mechanistic import FLUTTER_NOMINAL
 
 
 HEAVE_FRICTION_VS = 1e-3     # m/s: smoothing of sign(h') (tanh); below the orbits' speeds
@@ -159,7 +160,7 @@ def columns(effect: Effect, S, shape) -> np.ndarray:
     return band_limited(X, int(S["n"]))
 
 
-def band_limited(X: np.ndarray, n: int, K: int = K_HARMONICS) -> np.ndarray:
+def band_limited(X: np.ndarray, n: int, K: int = K) -> np.ndarray:
     """Columns X (N, m), orbit-major with ``n`` samples per orbit, with every harmonic
     above K removed orbit by orbit. The measured orbits are K-harmonic averages, so
     the residual holds harmonics 0..K only; a column compared with it must be too

@@ -21,14 +21,14 @@ Conventions (both systems)
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-K_HARMONICS = 7
-N_COEFFS = 2 * K_HARMONICS + 1
+from .._fourier import K, NCOEF
 
 
 class Drive(eqx.Module):
@@ -39,27 +39,93 @@ class Drive(eqx.Module):
 
     @staticmethod
     def of(param, omega=0.0, fc=None) -> "Drive":
-        fc = jnp.zeros(N_COEFFS) if fc is None else jnp.asarray(fc, dtype=float)
+        fc = jnp.zeros(NCOEF) if fc is None else jnp.asarray(fc, dtype=float)
         return Drive(jnp.asarray(param, dtype=float), jnp.asarray(omega, dtype=float), fc)
 
     @staticmethod
     def harmonic(param, omega) -> "Drive":
         """Pure cosine excitation of amplitude ``param``: what continuation in the amplitude uses."""
-        fc = jnp.zeros(N_COEFFS).at[1].set(1.0) * jnp.asarray(param, dtype=float)
+        fc = jnp.zeros(NCOEF).at[1].set(1.0) * jnp.asarray(param, dtype=float)
         return Drive(jnp.asarray(param, dtype=float), jnp.asarray(omega, dtype=float), fc)
 
     def excitation(self, t):
-        k = jnp.arange(1, K_HARMONICS + 1)
+        k = jnp.arange(1, K + 1)
         ph = k * self.omega * t
-        return (self.fc[0] + jnp.sum(self.fc[1:K_HARMONICS + 1] * jnp.cos(ph))
-                + jnp.sum(self.fc[K_HARMONICS + 1:] * jnp.sin(ph)))
+        return (self.fc[0] + jnp.sum(self.fc[1:K + 1] * jnp.cos(ph))
+                + jnp.sum(self.fc[K + 1:] * jnp.sin(ph)))
 
 
 # ---------------------------------------------------------------------------------------
 # mechanistic models
 # ---------------------------------------------------------------------------------------
 
-class FlutterQS(eqx.Module):
+class MechanisticModel(eqx.Module):
+    """What every mechanistic model is to the rest of ude_fit; per-system behaviour lives
+    in the subclasses' methods, so nothing downstream tests which system it holds.
+
+    A subclass sets ``system`` (the command line's name), ``n_dof``, ``known`` and
+    ``fitted`` (field names), ``autonomous`` (no time-dependent forcing: the period is an
+    unknown and every orbit has a trivial Floquet multiplier), and defines ``force``,
+    ``mass``, ``regressors``, ``parameter_feature`` and ``accelerations``."""
+
+    system: ClassVar[str]
+    n_dof: ClassVar[int]
+    known: ClassVar[tuple[str, ...]] = ()
+    fitted: ClassVar[tuple[str, ...]] = ()
+    autonomous: ClassVar[bool]
+    # names of fitted values no passive structure has at or below zero
+    must_be_positive: ClassVar[tuple[str, ...]] = ()
+
+    @property
+    def base(self) -> "MechanisticModel":
+        """The model without added effects (itself, unless refined)."""
+        return self
+
+    @property
+    def effects(self) -> tuple:
+        """The added effects (none, unless refined)."""
+        return ()
+
+    @property
+    def n_hidden(self) -> int:
+        """Hidden states after (q, q') (none, unless an added effect has dynamics)."""
+        return 0
+
+    def parameter_feature(self, drive: "Drive"):
+        """What a correction sees of the drive besides the states."""
+        raise NotImplementedError
+
+    def accelerations(self, F, t, drive: "Drive"):
+        """q'' from the generalised force F (everything but inertia) at time t."""
+        raise NotImplementedError
+
+    def residual_force(self, qdd, F, t, drive: "Drive"):
+        """The generalised force the model leaves unexplained when the measured
+        accelerations are qdd and its own force is F: what a correction must supply."""
+        raise NotImplementedError
+
+    def unphysical(self) -> str:
+        """The fitted values no passive structure has ("name = value, ..."; "" if none)."""
+        return ", ".join(f"{n} = {float(getattr(self, n)):.4g}" for n in self.must_be_positive
+                         if float(getattr(self, n)) <= 0)
+
+    def parameters(self) -> dict:
+        """Every fitted value by name (added effects' coefficients included)."""
+        return {f: float(getattr(self, f)) for f in self.fitted}
+
+    def stability_indicator(self, M):
+        """Positive for a stable periodic orbit with monodromy matrix M, negative once a
+        real multiplier passes 1 (smooth in M; no eigen-decomposition)."""
+        A = jnp.eye(M.shape[0]) - M
+        if not self.autonomous:
+            return jnp.linalg.det(A)
+        # the trivial multiplier factored out: d/dlambda det(lambda I - M) at 1 = sum of
+        # the principal (n-1)-minors of I - M = prod over the others of (1 - mu)
+        k = A.shape[0]
+        return sum(jnp.linalg.det(jnp.delete(jnp.delete(A, i, 0), i, 1)) for i in range(k))
+
+
+class FlutterQS(MechanisticModel):
     """Quasi-steady 2-DoF aerofoil (the paper's appendix A.2).
 
     ``M(V) q'' + B(V) q' + S(V) q + (0, k_alpha2 alpha^2 + k_alpha3 alpha^3) = 0``.
@@ -80,10 +146,32 @@ class FlutterQS(eqx.Module):
     k_alpha2: jax.Array
     k_alpha3: jax.Array
 
-    system = "flutter"
-    n_dof = 2
-    known = ("b", "a", "rho", "m_w", "m_T", "I_alpha", "x_alpha")
-    fitted = ("c_h", "c_alpha", "k_h", "k_alpha", "k_alpha2", "k_alpha3")
+    system: ClassVar[str] = "flutter"
+    n_dof: ClassVar[int] = 2
+    known: ClassVar[tuple[str, ...]] = ("b", "a", "rho", "m_w", "m_T", "I_alpha", "x_alpha")
+    fitted: ClassVar[tuple[str, ...]] = ("c_h", "c_alpha", "k_h", "k_alpha", "k_alpha2",
+                                         "k_alpha3")
+    autonomous: ClassVar[bool] = True
+    must_be_positive: ClassVar[tuple[str, ...]] = ("c_h", "c_alpha", "k_h", "k_alpha")
+
+    def parameter_feature(self, drive: Drive):
+        return drive.param                     # the airspeed
+
+    def accelerations(self, F, t, drive: Drive):
+        return jnp.linalg.solve(self.mass(drive.param), F)
+
+    def residual_force(self, qdd, F, t, drive: Drive):
+        return self.mass(drive.param) @ qdd - F
+
+    def library_states(self, q, qd, drive: Drive) -> dict:
+        """The named states the effect library's formulas read."""
+        return {"h": q[0], "al": q[1], "hd": qd[0], "ad": qd[1], "V": drive.param,
+                "b": self.b, "a": self.a}
+
+    @classmethod
+    def nominal(cls, **values) -> "FlutterQS":
+        """The design values, with ``values`` in their place."""
+        return flutter_qs(**values)
 
     def mass(self, V):
         pi, b, a, rho = jnp.pi, self.b, self.a, self.rho
@@ -127,7 +215,7 @@ class FlutterQS(eqx.Module):
         return jnp.stack([A1, A2], -2), known
 
 
-class Duffing7(eqx.Module):
+class Duffing7(MechanisticModel):
     """Base-excited oscillator with 3rd, 5th and 7th-order stiffness (per unit mass).
 
     ``x'' = -b x' - w2 x - c3 x^3 - c5 x^5 - c7 x^7 + g a_base(t)``; ``g`` is the
@@ -140,10 +228,26 @@ class Duffing7(eqx.Module):
     c7: jax.Array
     g: jax.Array
 
-    system = "oscillator"
-    n_dof = 1
-    known = ()
-    fitted = ("damping", "w2", "c3", "c5", "c7", "g")
+    system: ClassVar[str] = "oscillator"
+    n_dof: ClassVar[int] = 1
+    fitted: ClassVar[tuple[str, ...]] = ("damping", "w2", "c3", "c5", "c7", "g")
+    autonomous: ClassVar[bool] = False
+
+    def parameter_feature(self, drive: Drive):
+        return drive.omega                     # the forcing frequency (the paper's U(x, y; w))
+
+    def accelerations(self, F, t, drive: Drive):
+        return F + self.g * drive.excitation(t)
+
+    def residual_force(self, qdd, F, t, drive: Drive):
+        return qdd - F - self.g * drive.excitation(t)
+
+    def library_states(self, q, qd, drive: Drive) -> dict:
+        return {"x": q[0], "xd": qd[0], "w": drive.omega}
+
+    @classmethod
+    def nominal(cls, **values) -> "Duffing7":
+        return duffing7(**values)
 
     def mass(self, param):
         return jnp.eye(1)
@@ -180,6 +284,16 @@ def duffing7(**values) -> Duffing7:
     if unknown:
         raise ValueError(f"unknown oscillator parameter(s): {', '.join(sorted(unknown))}")
     return Duffing7(**{k: jnp.asarray(float(v)) for k, v in {**base, **values}.items()})
+
+
+# the command line's --system names, and the mechanistic model of each
+SYSTEMS: dict[str, type[MechanisticModel]] = {"flutter": FlutterQS, "oscillator": Duffing7}
+
+
+def model_class(system: str) -> type[MechanisticModel]:
+    if system not in SYSTEMS:
+        raise ValueError(f"unknown system {system!r} ({' or '.join(SYSTEMS)})")
+    return SYSTEMS[system]
 
 
 def parameters_of(mech) -> dict:

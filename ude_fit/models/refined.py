@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .library import Effect, effect
-from .mechanistic import parameters_of
+from .mechanistic import MechanisticModel, parameters_of
 
 
 
@@ -33,24 +33,31 @@ class AddedEffect(eqx.Module):
         return [f"{self.key}[{t}]" for t in self.spec.terms]
 
 
-def _states(base, q, qd, drive) -> dict:
-    if base.system == "flutter":
-        return {"h": q[0], "al": q[1], "hd": qd[0], "ad": qd[1], "V": drive.param,
-                "b": base.b, "a": base.a}
-    return {"x": q[0], "xd": qd[0], "w": drive.omega}
-
-
-class Refined(eqx.Module):
-    base: eqx.Module
+class Refined(MechanisticModel):
+    """A mechanistic model (``base``) with named effects added (``added``): the same
+    model to everything downstream, with more fitted parameters and maybe hidden states."""
+    base_model: MechanisticModel
     added: tuple
 
     @property
+    def base(self) -> MechanisticModel:
+        return self.base_model
+
+    @property
+    def effects(self) -> tuple:
+        return self.added
+
+    @property
     def system(self) -> str:
-        return self.base.system
+        return self.base_model.system
 
     @property
     def n_dof(self) -> int:
-        return self.base.n_dof
+        return self.base_model.n_dof
+
+    @property
+    def autonomous(self) -> bool:
+        return self.base_model.autonomous
 
     @property
     def n_hidden(self) -> int:
@@ -58,18 +65,36 @@ class Refined(eqx.Module):
 
     @property
     def known(self):
-        return self.base.known
+        return self.base_model.known
 
     @property
     def fitted(self):
-        return tuple(self.base.fitted) + tuple(n for a in self.added for n in a.names())
+        return tuple(self.base_model.fitted) + tuple(n for a in self.added for n in a.names())
 
     @property
-    def g(self):
-        return self.base.g
+    def must_be_positive(self):
+        return self.base_model.must_be_positive
+
+    def parameter_feature(self, drive):
+        return self.base_model.parameter_feature(drive)
+
+    def accelerations(self, F, t, drive):
+        return self.base_model.accelerations(F, t, drive)
+
+    def residual_force(self, qdd, F, t, drive):
+        return self.base_model.residual_force(qdd, F, t, drive)
+
+    def unphysical(self) -> str:
+        return self.base_model.unphysical()
+
+    def parameters(self) -> dict:
+        out = parameters_of(self.base_model)
+        for a in self.added:
+            out.update(zip(a.names(), np.asarray(a.coefficients).tolist()))
+        return out
 
     def mass(self, param):
-        return self.base.mass(param)
+        return self.base_model.mass(param)
 
     def _hidden_slices(self):
         off = 0
@@ -79,8 +104,8 @@ class Refined(eqx.Module):
             off += n
 
     def force(self, q, qd, drive, z=None):
-        F = self.base.force(q, qd, drive)
-        S = _states(self.base, q, qd, drive)
+        F = self.base_model.force(q, qd, drive)
+        S = self.base_model.library_states(q, qd, drive)
         for a, sl in self._hidden_slices():
             e = a.spec
             if e.hidden:
@@ -91,7 +116,7 @@ class Refined(eqx.Module):
         return F
 
     def hidden_rate(self, q, qd, drive, z):
-        S = _states(self.base, q, qd, drive)
+        S = self.base_model.library_states(q, qd, drive)
         rates = [a.spec.hidden.rate(jnp, S, z[sl], a.shape)
                  for a, sl in self._hidden_slices() if a.spec.hidden]
         return jnp.concatenate(rates) if rates else jnp.zeros(0)
@@ -107,20 +132,11 @@ class Refined(eqx.Module):
         return np.where(s > 0, s, 1.0)
 
 
-def parameters_of_refined(mech: Refined) -> dict:
-    out = parameters_of(mech.base)
-    for a in mech.added:
-        out.update(zip(a.names(), np.asarray(a.coefficients).tolist()))
-    return out
-
-
 def describe(mech) -> list[dict]:
     """The added effects of a (possibly) refined model, JSON-able."""
-    if not isinstance(mech, Refined):
-        return []
     return [{"key": a.key, "name": a.spec.name, "equation": a.spec.equation,
              "terms": list(a.spec.terms), "shape": a.shape, "shape_name": a.spec.shape_name,
-             "coefficients": np.asarray(a.coefficients).tolist()} for a in mech.added]
+             "coefficients": np.asarray(a.coefficients).tolist()} for a in mech.effects]
 
 
 def refined(base, added: list[dict]) -> Refined:

@@ -7,12 +7,12 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .mechanistic import Drive
+from .mechanistic import Drive, MechanisticModel
 
 
 class UDE(eqx.Module):
     """Mechanistic model plus an optional correction U(features(y, drive))."""
-    mech: eqx.Module
+    mech: MechanisticModel
     correction: eqx.Module | None = None
 
     @property
@@ -22,19 +22,17 @@ class UDE(eqx.Module):
     @property
     def n_hidden(self) -> int:
         """Hidden states of a refined mechanistic model (lags), after (q, q')."""
-        return getattr(self.mech, "n_hidden", 0)
+        return self.mech.n_hidden
 
     @property
     def n_state(self) -> int:
         return 2 * self.mech.n_dof + self.n_hidden
 
     def features(self, y, drive: Drive):
-        # The aerofoil's correction sees the measured states and the airspeed; the
-        # oscillator's sees its states and the forcing frequency (the paper's U(x, y; w)).
+        # the measured states and the model's parameter feature (airspeed, or forcing
+        # frequency); hidden states are the model's own and stay out
         y = y[:2 * self.mech.n_dof]
-        if self.mech.system == "flutter":
-            return jnp.concatenate([y, drive.param[None]])
-        return jnp.concatenate([y, drive.omega[None]])
+        return jnp.concatenate([y, self.mech.parameter_feature(drive)[None]])
 
     def correction_force(self, y, drive: Drive):
         if self.correction is None:
@@ -50,11 +48,7 @@ class UDE(eqx.Module):
         else:
             F = self.mech.force(q, qd, drive)
         F = F + self.correction_force(y, drive)
-        if self.mech.system == "oscillator":
-            F = F + self.mech.g * drive.excitation(t)
-            qdd = F
-        else:
-            qdd = jnp.linalg.solve(self.mech.mass(drive.param), F)
+        qdd = self.mech.accelerations(F, t, drive)
         if self.n_hidden:
             return jnp.concatenate([qd, qdd, self.mech.hidden_rate(q, qd, drive, z)])
         return jnp.concatenate([qd, qdd])

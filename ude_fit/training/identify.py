@@ -13,18 +13,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..models.flow import evaluate_series
+from .._fourier import K, amplitude, evaluate
 from ..models.library import band_limited, columns, effect, states_of
-from ..models.mechanistic import (Drive, Duffing7, FLUTTER_NOMINAL, FlutterQS, K_HARMONICS,
-                                  duffing7, flutter_qs)
+from ..models.mechanistic import (FLUTTER_NOMINAL, Drive, Duffing7, FlutterQS, duffing7,
+                                  flutter_qs)
 from ..models.refined import refined
 from ..models.ude import UDE
 
 
-
 def derivative_coeffs(c: np.ndarray, omega: float) -> np.ndarray:
     """Coefficients (15, ...) of d/dt of the series with phase omega t."""
-    K = K_HARMONICS
     k = np.arange(1, K + 1).reshape((K,) + (1,) * (c.ndim - 1))
     d = np.zeros_like(c)
     d[1:K + 1] = omega * k * c[K + 1:]
@@ -55,17 +53,16 @@ def training_data(ds, n: int = 32) -> TrainingData:
         w = 2 * np.pi * o.frequency
         cd = derivative_coeffs(c, w)
         cdd = derivative_coeffs(cd, w)
-        q, qd, qdd = (evaluate_series(x, phi) for x in (c, cd, cdd))
+        q, qd, qdd = (evaluate(x.T, phi).T for x in (c, cd, cdd))
         ys.append(np.concatenate([q, qd], axis=1))
         qdds.append(qdd)
         T.append(1.0 / o.frequency)
         P.append(o.parameter)
         W.append(w)
-        FC.append(np.zeros(2 * K_HARMONICS + 1) if o.forcing is None else np.asarray(o.forcing))
+        FC.append(np.zeros(2 * K + 1) if o.forcing is None else np.asarray(o.forcing))
         L.append(0 if o.stable is None else (1 if o.stable else -1))
     ys = np.asarray(ys)
-    amp = np.hypot(np.asarray([o.coeffs[0][1] for o in ds.orbits]),
-                   np.asarray([o.coeffs[0][K_HARMONICS + 1] for o in ds.orbits]))
+    amp = amplitude(np.asarray([o.coeffs[0] for o in ds.orbits]))
     y_scale = np.sqrt(np.mean(ys ** 2, axis=(0, 1)))
     return TrainingData(jnp.asarray(ys), jnp.asarray(np.asarray(qdds)), jnp.asarray(T),
                         Drive(jnp.asarray(P, float), jnp.asarray(W, float), jnp.asarray(FC)),
@@ -83,7 +80,6 @@ def _flat(data: TrainingData):
 
 
 def _excitation(fc, omega, t):
-    K = K_HARMONICS
     k = np.arange(1, K + 1)
     ph = (omega * t)[:, None] * k
     return fc[:, 0] + (fc[:, 1:K + 1] * np.cos(ph)).sum(1) + (fc[:, K + 1:] * np.sin(ph)).sum(1)
@@ -223,11 +219,7 @@ def residual_forces(model: UDE, data: TrainingData):
         q, qd = y[:nd], y[nd:2 * nd]
         F = model.mech.force(q, qd, drive, y[2 * nd:]) if model.n_hidden else \
             model.mech.force(q, qd, drive)
-        if model.system == "oscillator":
-            r = qdd - F - model.mech.g * drive.excitation(tt)
-        else:
-            r = model.mech.mass(drive.param) @ qdd - F
-        return model.features(y, drive), r
+        return model.features(y, drive), model.mech.residual_force(qdd, F, tt, drive)
 
     f = jax.vmap(jax.vmap(one, in_axes=(0, 0, 0, None)), in_axes=(0, 0, 0, 0))
     Z, R = f(data.ys, data.qdd, t, data.drive)

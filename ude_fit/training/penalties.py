@@ -21,8 +21,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._fourier import amplitude, harmonics
 from ..data.estimates import unstable_amplitude_line
-from ..models.flow import harmonics
 from ..models.mechanistic import Drive
 from ..models.ude import UDE
 from .identify import TrainingData
@@ -68,8 +68,7 @@ def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> 
     lab = np.asarray(data.label)
     v_stable = P[lab < 0].max() if np.any(lab < 0) else -np.inf
     # first-harmonic heave amplitude of each orbit, to scale its shape to unit amplitude
-    c = harmonics(ys[:, :, 0].T, 1)
-    amp = np.hypot(c[1], c[2])
+    amp = amplitude(harmonics(ys[:, :, 0].T, 1))
     a_grid = np.linspace(0.04, 1.3, 16) * amp.max()
     v_hopf = _hopf_from_unstable(P, amp, lab)
     # 16 samples per shape: the cycle mean of q' (7 harmonics) times the force is exact
@@ -112,7 +111,7 @@ def _aero_work_scale(model: UDE, reg: Regularity):
     """The mechanistic model's aerodynamic damping work on the measured shapes at unit
     amplitude (mean magnitude): the unit the energy penalties are measured in."""
     n = model.mech.n_dof
-    B = getattr(model.mech, "base", model.mech).aero_damping
+    B = model.mech.base.aero_damping
 
     def one(y_unit, V, dt):
         qd = y_unit[:, n:2 * n]
@@ -228,7 +227,7 @@ class EnergyRising(Penalty):
         aerodynamic damping grows with V and D falls (the quasi-steady model's does, on these
         shapes, below about 18 m/s), so the grid starts half a span below the data."""
         n = model.mech.n_dof
-        mech = getattr(model.mech, "base", model.mech)
+        mech = model.mech.base
         total = lambda y, d: mech.force(y[:n], y[n:2 * n], d) + model.correction_force(y, d)
         Vr = reg.rising_V
         # down to 1 % of the largest orbit: the hooks a branch makes near its Hopf point

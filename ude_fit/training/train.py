@@ -80,18 +80,6 @@ def _simulate_with_monodromy(model, y0, T, drive, n, sub):
     return yT, ys[::sub], M
 
 
-def _stability_indicator(system: str, M):
-    """Positive for a stable orbit, negative once a real multiplier passes 1."""
-    A = jnp.eye(M.shape[0]) - M
-    if system == "flutter":
-        # d/dlambda det(lambda I - M) at 1 = sum of the principal (n-1)-minors of I - M;
-        # it equals prod over the non-trivial multipliers of (1 - mu).
-        k = A.shape[0]
-        minors = [jnp.linalg.det(jnp.delete(jnp.delete(A, i, 0), i, 1)) for i in range(k)]
-        return sum(minors)
-    return jnp.linalg.det(A)
-
-
 def trajectory_loss(params, static, mech, data: TrainingData, sub: int, penalties=(),
                     reg=None):
     """One-period trajectories from the measured states against the measured orbits (the
@@ -116,11 +104,11 @@ def _periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
     w_close, w_stab, margin = cfg.closure_weight, cfg.stability_weight, cfg.stability_margin
     sub = cfg.substeps
     n = data.ys.shape[1]
-    autonomous = model.system == "flutter"
+    autonomous = model.mech.autonomous
 
     def one(ys, y0, T, drive, label):
         yT, sim, M = _simulate_with_monodromy(model, y0, T, drive, n, sub)
-        s = _stability_indicator(model.system, M)
+        s = model.mech.stability_indicator(M)
         fit = jnp.mean(((sim - ys) / data.y_scale) ** 2)
         close = jnp.sum(((yT - y0) / data.y_scale) ** 2)
         stab = jnp.where(label == 0, 0.0, jax.nn.relu(margin - label * s) ** 2)
@@ -142,11 +130,9 @@ def periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, re
 def _mech_leaves(mech):
     """The fitted parameters of a mechanistic model as a tuple of arrays: the base
     model's fitted fields, then each added effect's coefficient vector."""
-    base = getattr(mech, "base", mech)
-    out = tuple(getattr(base, f) for f in base.fitted)
-    if base is not mech:
-        out = out + tuple(a.coefficients for a in mech.added)
-    return out
+    base = mech.base
+    return (tuple(getattr(base, f) for f in base.fitted)
+            + tuple(a.coefficients for a in mech.effects))
 
 
 def _mech_with(mech, sizes, base, scale, delta):
@@ -176,7 +162,7 @@ def refine_mechanistic(model: UDE, data: TrainingData, *, cfg: TrainConfig, prog
     base = jnp.concatenate([jnp.ravel(jnp.asarray(x, float)) for x in leaves])
     scale = jnp.where(jnp.abs(base) > 0, jnp.abs(base), 1.0)
     params = {"delta": jnp.zeros(base.size), "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
-    if model.system == "flutter":
+    if model.mech.autonomous:                  # the period is an unknown too
         params["dT"] = jnp.zeros(data.period.shape)
     params, v = minimize(_mech_periodic_loss, params,
                          (mech, sizes, base, scale, data, cfg),
@@ -212,7 +198,7 @@ def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training
         # initial states and periods as scaled offsets from the measured ones, so one
         # Adam step size suits metres, radians and seconds alike
         params = {"corr": params["corr"], "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
-        if model.system == "flutter":
+        if model.mech.autonomous:
             params["dT"] = jnp.zeros(data.period.shape)
         params, v = minimize(periodic_loss, params, (static, mech, data, cfg, reg),
                              adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
