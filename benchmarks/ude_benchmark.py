@@ -48,10 +48,10 @@ def _child(spec: dict) -> dict:
 
     def progress(event, **kw):
         if event == "start_done" and "t" not in first_ok:
-            m = kw["record"].get("metrics") or {}
+            m = kw["record"].metrics or {}
             if m.get("branch_rms") is not None and m["branch_rms"] <= 0.01 and m["missed"] == 0:
                 first_ok["t"] = time.perf_counter() - t0
-                first_ok["start"] = kw["record"]["start"]
+                first_ok["start"] = kw["record"].start
 
     res = fit(ds, opts, reference=spec["truth"], progress=progress)
     total = time.perf_counter() - t0

@@ -19,7 +19,7 @@ from .analysis import (Branch, Equilibria, branch_metrics, diagram_ranges,
                        trace_forced)
 from .data import (DataError, Orbit, OrbitDataset, estimate_from_data, load,
                    load_campaign, load_lee)
-from .fitting import FitResult, fit
+from .fitting import FitResult, StartRecord, fit
 from .pipeline import PipelineOptions, PipelineResult, run_pipeline
 from .model_file import load_model, save_model
 from .models import (UDE, Drive, Duffing7, FlutterQS, MLPCorrection, duffing7,
@@ -34,7 +34,7 @@ __all__ = [
     "Equilibria", "EquilibriumPenalty", "FitOptions", "FitResult", "FlutterQS",
     "GPCorrection", "MLPCorrection", "Orbit", "OrbitDataset", "PipelineOptions",
     "PipelineResult", "RestStability",
-    "SmoothnessPenalty", "TrainConfig", "TrainingData", "UDE", "WeightDecay",
+    "SmoothnessPenalty", "StartRecord", "TrainConfig", "TrainingData", "UDE", "WeightDecay",
     "branch_metrics", "diagram_ranges", "duffing7", "equilibrium_branch",
     "estimate_from_data", "fit", "fit_gp", "flutter_qs", "hopf_point", "identify", "load",
     "load_campaign", "load_lee", "load_model", "orbit_at", "parameters_of",

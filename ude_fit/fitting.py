@@ -34,6 +34,45 @@ from .training.optimise import Diverged
 from .training.options import FitOptions
 from .training.train import refine_mechanistic, train_ude
 
+# the figures of a start's metrics its record keeps (with its fold count)
+_RECORD_METRICS = ("branch_rms", "branch_max", "missed", "trajectory_rms", "hopf", "fold")
+
+
+@dataclass
+class StartRecord:
+    """One random start of a fit: what it produced and how it was judged."""
+    start: int
+    seed: int
+    approximator: str
+    status: str = "ok"                  # "ok", or "dropped" (its training diverged)
+    reason: str | None = None           # why it was dropped
+    seconds: float = 0.0
+    train_seconds: float | None = None
+    loss: float | None = None
+    info: dict = field(default_factory=dict)
+    metrics: dict | None = None         # branch_metrics of its diagram
+    adequate: bool = False
+    model: UDE | None = None
+    diagram: dict | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def to_json(self) -> dict:
+        """The record as metrics.json keeps it: no model, the scalar training info, the
+        headline metrics and the fold count."""
+        out = {"start": self.start, "seed": self.seed, "approximator": self.approximator}
+        if not self.ok:
+            return {**out, "status": self.status, "reason": self.reason,
+                    "seconds": self.seconds, "adequate": self.adequate}
+        out.update(train_seconds=self.train_seconds, status=self.status, loss=self.loss,
+                   info={k: v for k, v in self.info.items()
+                         if isinstance(v, (int, float, str, bool))},
+                   seconds=self.seconds, adequate=self.adequate,
+                   metrics={**{k: self.metrics[k] for k in _RECORD_METRICS},
+                            "fold_count": fold_count(self.metrics)})
+        return out
 
 
 @dataclass
@@ -46,7 +85,7 @@ class FitResult:
     metrics: dict               # {"mechanistic", "ude", "starts", "data", ...}
     scales: np.ndarray
     ranges: dict
-    starts: list = field(default_factory=list)
+    starts: list[StartRecord] = field(default_factory=list)
 
 
 # ---------------------------------------------------------------------------------------
@@ -157,32 +196,31 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
     for k in range(opts.starts):
         t0 = time.perf_counter()
         say(event="start", start=k + 1, starts=opts.starts)
-        rec = {"start": k + 1, "seed": opts.seed, "approximator": opts.approximator}
+        rec = StartRecord(k + 1, opts.seed, opts.approximator)
         try:
             model, info = _train_start(
                 mech_model, data, opts, k, keys[k],
                 (lambda **kw: say(event="train", start=k + 1, **kw)) if verbose else None)
-            rec["train_seconds"] = time.perf_counter() - t0
+            rec.train_seconds = time.perf_counter() - t0
             diag, m = _evaluate(model, ds, ranges, scales, ref, ref_source)
-            rec.update(status="ok", loss=info.get("final_loss"), info=info, metrics=m)
-            rec["_model"], rec["_diagram"] = model, diag
+            rec.loss, rec.info, rec.metrics = info.get("final_loss"), info, m
+            rec.model, rec.diagram = model, diag
         except Diverged as exc:
-            rec.update(status="dropped", reason=str(exc), metrics=None)
-        rec["seconds"] = time.perf_counter() - t0
+            rec.status, rec.reason = "dropped", str(exc)
+        rec.seconds = time.perf_counter() - t0
         say(event="start_done", start=k + 1, record=rec)
         starts.append(rec)
 
     scatter = data_scatter(ds)
     fold_needed = needs_fold(ds)
-    ok = [s for s in starts if s["status"] == "ok" and s["metrics"]["branch_rms"] is not None]
-    for s, a in zip(starts, judge_starts([s["metrics"] if s["status"] == "ok" else None
-                                          for s in starts], mech_m, opts, scatter,
+    ok = [s for s in starts if s.ok and s.metrics["branch_rms"] is not None]
+    for s, a in zip(starts, judge_starts([s.metrics for s in starts], mech_m, opts, scatter,
                                          fold_needed)):
-        s["adequate"] = a
+        s.adequate = a
     best = None
     if ok:
-        best = min(ok, key=lambda s: (not s["adequate"], s["metrics"]["missed"],
-                                      s["metrics"]["branch_rms"]))
+        best = min(ok, key=lambda s: (not s.adequate, s.metrics["missed"],
+                                      s.metrics["branch_rms"]))
     metrics = {
         "system": opts.system,
         "approximator": opts.approximator,
@@ -196,41 +234,26 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                         "identification": {k: v for k, v in ident.items()
                                            if k not in ("parameters", "std_error")},
                         "std_error": ident["std_error"]},
-        "ude": None if best is None else {**best["metrics"], "start": best["start"],
-                                          "adequate": best["adequate"]},
+        "ude": None if best is None else {**best.metrics, "start": best.start,
+                                          "adequate": best.adequate},
         "starts": {"requested": opts.starts,
                    "completed": len(ok),
-                   "dropped": [{"start": s["start"], "reason": s["reason"]}
-                               for s in starts if s["status"] == "dropped"],
-                   "adequate": int(sum(s["adequate"] for s in starts)),
-                   "kept": None if best is None else best["start"],
+                   "dropped": [{"start": s.start, "reason": s.reason}
+                               for s in starts if not s.ok],
+                   "adequate": int(sum(s.adequate for s in starts)),
+                   "kept": None if best is None else best.start,
                    "criterion": {"missed": 0, "below_mechanistic": True,
                                  "factor_of_best": opts.adequacy_factor,
                                  "floor": opts.adequacy_floor,
                                  "data_scatter": scatter,
                                  "max_extra_folds_per_family": 1,
                                  "fold_required": fold_needed},
-                   "records": [_public(s) for s in starts]},
+                   "records": [s.to_json() for s in starts]},
         "ranges": ranges,
         "seconds": time.perf_counter() - t_start,
     }
     return FitResult(options=opts, mechanistic=mech_model,
-                     ude=None if best is None else best["_model"], identification=ident,
+                     ude=None if best is None else best.model, identification=ident,
                      diagrams={"mechanistic": mech_diag,
-                               "ude": None if best is None else best["_diagram"]},
+                               "ude": None if best is None else best.diagram},
                      metrics=metrics, scales=scales, ranges=ranges, starts=starts)
-
-
-def _public(s: dict) -> dict:
-    out = {k: v for k, v in s.items() if not k.startswith("_") and k != "metrics"}
-    m = s.get("metrics")
-    if m:
-        out["metrics"] = {k: m[k] for k in ("branch_rms", "branch_max", "missed",
-                                            "trajectory_rms", "hopf", "fold")}
-        out["metrics"]["fold_count"] = fold_count(m)
-    info = out.get("info")
-    if info:
-        out["info"] = {k: v for k, v in info.items() if isinstance(v, (int, float, str, bool))}
-    return out
-
-

@@ -8,7 +8,8 @@ import numpy as np
 
 from ..data.orbit import OrbitDataset
 from ..models.ude import UDE
-from .continuation import Branch, trace_flutter, trace_flutter_through, trace_forced
+from .continuation import trace_flutter, trace_flutter_through, trace_forced
+from .diagram_type import MAIN, Diagram
 from .metrics import branch_metrics, locations, model_orbit, with_reference
 
 
@@ -28,28 +29,26 @@ def diagram_ranges(ds: OrbitDataset) -> dict:
     return {"frequencies": out}
 
 
-def trace_diagram(model: UDE, ranges: dict, scales, ds: OrbitDataset | None = None) -> dict:
-    """The model's branches: {"flutter": Branch, "flutter/1": isola, ...} or {freq_hz: Branch}.
+def trace_diagram(model: UDE, ranges: dict, scales, ds: OrbitDataset | None = None) -> Diagram:
+    """The model's branches (:class:`Diagram`).
 
     Aerofoil: the branch from the Hopf point; with ``ds``, also the branch through every
     measured orbit that branch does not explain (a fitted model can have isolas, which a
     continuation from the Hopf point alone would never see)."""
-    if model.system == "flutter":
-        out = {"flutter": trace_flutter(model, v_range=ranges["v_range"],
-                                        amp_max=ranges["amp_max"], scales=scales)}
-        if ds is not None:
-            _add_isolas(model, out, ranges, scales, ds)
-        return out
+    if model.mech.autonomous:
+        out = Diagram({MAIN: trace_flutter(model, v_range=ranges["v_range"],
+                                           amp_max=ranges["amp_max"], scales=scales)})
+        return out if ds is None else _with_isolas(model, out, ranges, scales, ds)
     out = {}
     for key, r in ranges["frequencies"].items():
         lo, hi = r["a_range"]
         out[r["freq_hz"]] = trace_forced(model, freq_hz=r["freq_hz"],
                                          a_range=(max(lo, 0.01 * hi), hi),
                                          amp_max=r["amp_max"], scales=scales)
-    return out
+    return Diagram(out)
 
 
-def _add_isolas(model, diagram, ranges, scales, ds, max_isolas: int = 6, near: float = 0.02):
+def _with_isolas(model, diagram, ranges, scales, ds, max_isolas: int = 6, near: float = 0.02):
     start = ds.sample(1)
     a_max = float(ds.amplitudes().max())
     for i, o in enumerate(ds.orbits):
@@ -69,7 +68,8 @@ def _add_isolas(model, diagram, ranges, scales, ds, max_isolas: int = 6, near: f
                                   v_range=ranges["v_range"], amp_max=ranges["amp_max"],
                                   scales=scales, known=known)
         if b is not None and b.param.size > 1:
-            diagram[f"flutter/{len(diagram)}"] = b
+            diagram = diagram.with_isola(b)
+    return diagram
 
 
 def _evaluate(model, ds, ranges, scales, reference, ref_source) -> tuple[dict, dict]:
@@ -77,17 +77,3 @@ def _evaluate(model, ds, ranges, scales, reference, ref_source) -> tuple[dict, d
     m = branch_metrics(model, diagram, ds, scales=scales)
     m.update(with_reference(locations(diagram), reference, ref_source))
     return diagram, m
-
-
-def diagram_to_dict(diagram: dict | None) -> dict | None:
-    if diagram is None:
-        return None
-    return {str(k): b.to_dict() for k, b in diagram.items()}
-
-
-def diagram_from_dict(d: dict | None) -> dict | None:
-    if d is None:
-        return None
-    return {(k if k.startswith("flutter") else float(k)): Branch.from_dict(b)
-            for k, b in d.items()}
-

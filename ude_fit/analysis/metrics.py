@@ -25,7 +25,8 @@ import numpy as np
 
 from .._fourier import K, harmonics
 from ..data.orbit import OrbitDataset
-from .continuation import Branch, orbit_at, same_fold
+from .continuation import orbit_at, same_fold
+from .diagram_type import Diagram
 
 
 
@@ -111,15 +112,6 @@ def _summary(points: list, a_max: float) -> dict:
             "trajectory_rms": float(np.sqrt(np.mean(traj ** 2))) if traj.size else None}
 
 
-def branches_for(diagram: dict, o) -> list[Branch]:
-    """The branches of a diagram that can hold orbit ``o``: every aerofoil branch (the one
-    from the Hopf point and any isola), or the oscillator's branch at o's frequency."""
-    if any(str(k).startswith("flutter") for k in diagram):
-        return [b for k, b in diagram.items() if str(k).startswith("flutter")]
-    return [b for f, b in diagram.items()
-            if abs(float(f) - o.frequency) <= 1e-6 * max(1.0, o.frequency)]
-
-
 def model_orbit(model, diagram: dict, o, *, scales,
                 fold_tolerance: float | None = None) -> dict | None:
     """The model's orbit matching measured orbit ``o``: same parameter, the measured
@@ -133,7 +125,7 @@ def model_orbit(model, diagram: dict, o, *, scales,
         return best is None or (abs(sol["amplitude"] - o.amplitude)
                                 < abs(best["amplitude"] - o.amplitude))
 
-    for b in branches_for(diagram, o):
+    for b in Diagram.of(diagram).branches_for_orbit(o):
         sol = orbit_at(model, b, o.parameter, o.stable, scales=scales, near=o.amplitude)
         if sol is None or (o.stable is not None and sol["stable"] != o.stable):
             continue
@@ -141,7 +133,7 @@ def model_orbit(model, diagram: dict, o, *, scales,
             best = sol
     if not fold_tolerance:
         return best
-    for b in branches_for(diagram, o):
+    for b in Diagram.of(diagram).branches_for_orbit(o):
         for f in b.folds:
             if abs(f["param"] - o.parameter) > fold_tolerance:
                 continue
@@ -171,24 +163,23 @@ def model_orbit(model, diagram: dict, o, *, scales,
 
 def locations(diagram: dict) -> dict:
     """Hopf and fold parameters of a traced diagram (None where there is none)."""
-    if "flutter" in diagram:
-        b = diagram["flutter"]
+    diagram = Diagram.of(diagram)
+    b = diagram.main
+    if b is not None:
         hopf = b.hopf["param"] if b.hopf else None
         folds = sorted(f["param"] for f in b.folds)
         # an isola traced from a measured orbit can be a stretch of a branch already traced
         # (the two met only beyond the point the tracing started from): its folds are
         # those already counted
         seen, others = list(b.folds), []
-        for k, bb in diagram.items():
-            if k == "flutter":
-                continue
+        for bb in diagram.isolas:
             for f in bb.folds:
                 if not any(same_fold(f, g) for g in seen):
                     seen.append(f)
                     others.append(f["param"])
         others.sort()
         return {"hopf": hopf, "fold": folds[0] if folds else None, "folds": folds,
-                "isolas": len(diagram) - 1, "isola_folds": others}
+                "isolas": len(diagram.isolas), "isola_folds": others}
     return {"hopf": None, "fold": None,
             "folds": {f"{float(f):g}": sorted(x["param"] for x in b.folds)
                       for f, b in diagram.items()}}

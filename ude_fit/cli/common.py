@@ -73,9 +73,8 @@ class Progress:
                      f"{'kept' if r['kept'] else 'not kept'} ({r['reason']})")
         elif event == "start_done":
             r = kw["record"]
-            if r["status"] == "ok":
-                m = r["metrics"]
-                self.say(f"start {r['start']} done in {r['seconds']:.1f} s: branch RMS "
-                         f"{pct(m['branch_rms'])}, missed {m['missed']}")
+            if r.ok:
+                self.say(f"start {r.start} done in {r.seconds:.1f} s: branch RMS "
+                         f"{pct(r.metrics['branch_rms'])}, missed {r.metrics['missed']}")
             else:
-                self.say(f"start {r['start']} dropped: {r['reason']}")
+                self.say(f"start {r.start} dropped: {r.reason}")

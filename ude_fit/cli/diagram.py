@@ -6,7 +6,8 @@ import os
 
 import numpy as np
 
-from ..analysis.diagram import diagram_from_dict, diagram_to_dict, trace_diagram
+from ..analysis.diagram import trace_diagram
+from ..analysis.diagram_type import Diagram
 from ..data import OrbitDataset, load
 from ..model_file import _version, load_model
 from ..report.files import write_json
@@ -32,14 +33,14 @@ def run(args, argv) -> int:
     if args.retrace or not header.get("diagram"):
         diagram = trace_diagram(model, header["ranges"], np.asarray(header["scales"]))
     else:
-        diagram = diagram_from_dict(header["diagram"])
+        diagram = Diagram.from_json(header["diagram"])
     role = header.get("role", "model")
     stem = os.path.splitext(os.path.basename(args.model))[0]
     png = os.path.join(out, f"{stem}_diagram.png")
     plot_diagram(png, ds, {role: diagram}, title=f"{header['system']}: {role} model")
     write_json(os.path.join(out, f"{stem}_diagram.json"),
                {"model": os.path.abspath(args.model), "retraced": bool(args.retrace),
-                "version": _version(), "diagram": diagram_to_dict(diagram)})
+                "version": _version(), "diagram": diagram.to_json()})
     hopf = [b.hopf["param"] for b in diagram.values() if b.hopf]
     folds = [f["param"] for b in diagram.values() for f in b.folds]
     print(f"wrote {png}; branches {len(diagram)}, Hopf "

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 
-from ..analysis.diagram import diagram_to_dict
 from ..model_file import save_model
 from .files import write_json, write_text
 from .markdown import render
@@ -22,10 +21,10 @@ def write_fit(out, ds, res, provenance: dict) -> dict:
                 ranges=res.ranges, version=provenance["version"],
                 written=provenance["written"])
     save_model(os.path.join(out, "mechanistic.eqx"), res.mechanistic, role="mechanistic",
-               diagram=diagram_to_dict(res.diagrams["mechanistic"]), **meta)
+               diagram=res.diagrams["mechanistic"].to_json(), **meta)
     if res.ude is not None:
         save_model(os.path.join(out, "ude.eqx"), res.ude, role="ude",
-                   diagram=diagram_to_dict(res.diagrams["ude"]), **meta)
+                   diagram=res.diagrams["ude"].to_json(), **meta)
     figures = _figures(out, ds, res)
     metrics["figures"] = figures
     metrics["models"] = {"mechanistic": "mechanistic.eqx",

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 
-from ..analysis.diagram import diagram_to_dict
 from ..discovery.loop import metrics_document
 from ..model_file import save_model
 from .files import write_json, write_text
@@ -40,17 +39,17 @@ def write_loop(out, ds, result, provenance: dict, *, name: str, options: dict) -
     meta = dict(sources=list(ds.sources), ranges=result.ranges, version=doc["version"],
                 written=doc["written"])
     save_model(os.path.join(out, "mechanistic.eqx"), result.before.model, role="mechanistic",
-               scales=result.before.scales, diagram=diagram_to_dict(result.before.diagram),
+               scales=result.before.scales, diagram=result.before.diagram.to_json(),
                **meta)
     save_model(os.path.join(out, "refined.eqx"), result.after.model, role="refined",
-               scales=result.after.scales, diagram=diagram_to_dict(result.after.diagram),
+               scales=result.after.scales, diagram=result.after.diagram.to_json(),
                **meta)
     models = {"mechanistic": "mechanistic.eqx", "refined": "refined.eqx"}
     for which, fname in (("before", "ude_mechanistic.eqx"), ("after", "ude_refined.eqx")):
         f = result.ude.get(which)
         if f is not None and f.ude is not None and (which == "before" or result.added):
             save_model(os.path.join(out, fname), f.ude, role=f"ude ({which})",
-                       scales=f.scales, diagram=diagram_to_dict(f.diagrams["ude"]), **meta)
+                       scales=f.scales, diagram=f.diagrams["ude"].to_json(), **meta)
             models[f"ude_{which}"] = fname
     doc["models"] = models
     write_json(os.path.join(out, "metrics.json"), doc)

@@ -21,6 +21,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from ..analysis.continuation import Branch
+from ..analysis.diagram_type import Diagram
 from ..analysis.metrics import model_orbit
 from ..discovery.explain import EQUATIONS
 
@@ -51,15 +52,8 @@ def stability_runs(stable) -> list[tuple[int, int, bool]]:
     return [(int(a), int(min(b + 1, s.size)), bool(s[a])) for a, b in zip(starts, ends)]
 
 
-def _branch_for(diagram: dict | None, freq: float | None) -> Branch | None:
-    if not diagram:
-        return None
-    if "flutter" in diagram:
-        return diagram["flutter"]
-    for f, b in diagram.items():
-        if freq is not None and abs(float(f) - freq) <= 1e-6 * max(1.0, freq):
-            return b
-    return None
+def _branch_for(diagram, freq: float | None) -> Branch | None:
+    return Diagram.of(diagram).branch_for(freq) if diagram else None
 
 
 def _draw_branch(ax, b: Branch, colour: str) -> None:
@@ -117,7 +111,7 @@ def _grid(n: int, width: float, height: float, extra_w: float = 0.0, max_cols: i
 def _frequencies(ds, diagrams) -> list[float]:
     out = [float(f) for f in ds.frequencies_group()] if len(ds) else []
     for d in diagrams.values():
-        for f in (d or {}):
+        for f in (Diagram.of(d).frequencies() if d else []):
             if not any(abs(float(f) - g) <= 1e-6 * max(1.0, g) for g in out):
                 out.append(float(f))
     return sorted(out)
@@ -142,9 +136,8 @@ def diagram_figure(ds, diagrams: dict, *, title: str = "") -> Figure:
             if b is None:
                 continue
             _draw_branch(ax, b, colours[n])
-            for key, isola in diagrams[n].items():      # branches not from the Hopf point
-                if key != "flutter":
-                    _draw_branch(ax, isola, colours[n])
+            for isola in Diagram.of(diagrams[n]).isolas:
+                _draw_branch(ax, isola, colours[n])
             if b.hopf:
                 vh = b.hopf["param"]
                 ax.plot([lo, vh], [0, 0], color=colours[n], lw=1.8, zorder=3)
