@@ -13,6 +13,7 @@ import pytest
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import EnergyRising, FitOptions, OrbitDataset, load
 from ude_fit.cli import build_parser
+from ude_fit.cli import common as cli_common
 from ude_fit.cli import pipeline as pipeline_cli
 from ude_fit.cli.options import fit_options
 
@@ -63,7 +64,7 @@ def test_pipeline_hands_the_library_the_options(monkeypatch, tmp_path):
         seen["options"] = options
         raise Reached
 
-    monkeypatch.setattr(pipeline_cli, "load", lambda paths, system: OrbitDataset(system, (), ()))
+    monkeypatch.setattr(cli_common, "load", lambda paths, system: OrbitDataset(system, (), ()))
     monkeypatch.setattr(pipeline_cli, "run_pipeline", run_pipeline)
     argv = ["pipeline", "data.h5", "--system", "flutter", *NN_FLAGS, "--max-effects", "2",
             "--out", str(tmp_path / "o"), "--quiet"]

@@ -9,6 +9,7 @@ import shlex
 import sys
 import time
 
+from ..data import load
 from ..report.format import pct
 
 EXIT_USAGE = 2
@@ -36,6 +37,18 @@ def out_dir(path: str) -> str:
     except OSError as exc:
         raise UsageError(f"--out {path}: cannot create ({exc.strerror})") from None
     return path
+
+
+def start(args, build_options):
+    """What a fitting command does first, in this order so that nothing is written for bad
+    input: its options (a ValueError becomes the usage error), the data, the output
+    folder, the progress display. Returns (options, dataset, folder, progress)."""
+    try:
+        opts = build_options(args)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    ds = load(args.data, args.system)
+    return opts, ds, out_dir(args.out), Progress(args.quiet)
 
 
 class Progress:

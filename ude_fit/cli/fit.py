@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import sys
 
-from ..data import load
 from ..fitting import fit
 from ..report.files import provenance
 from ..report.fit_files import write_fit
 from ..report.format import pct
-from .common import Progress, UsageError, command_line, out_dir
+from .common import command_line, start
 from .options import add_data_arguments, add_fit_arguments, fit_options
 
 
@@ -23,13 +22,7 @@ def add_parser(sub) -> None:
 
 
 def run(args, argv) -> int:
-    try:
-        opts = fit_options(args)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    ds = load(args.data, args.system)       # bad input fails here, before anything is written
-    out = out_dir(args.out)
-    progress = Progress(args.quiet)
+    opts, ds, out, progress = start(args, fit_options)
     progress.say(f"{len(ds)} orbits loaded ({args.system}); fitting")
     res = fit(ds, opts, progress=progress)
     metrics = write_fit(out, ds, res, provenance(command_line(argv), args.data))

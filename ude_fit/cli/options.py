@@ -38,26 +38,23 @@ def finite_float(name):
     return conv
 
 
-def nonnegative_float(name):
+def _bounded_float(name, ok, must: str):
     finite = finite_float(name)
 
     def conv(s):
         v = finite(s)
-        if v < 0:
-            raise argparse.ArgumentTypeError(f"{name} must not be negative, not {s!r}")
+        if not ok(v):
+            raise argparse.ArgumentTypeError(f"{name} must {must}, not {s!r}")
         return v
     return conv
+
+
+def nonnegative_float(name):
+    return _bounded_float(name, lambda v: v >= 0, "not be negative")
 
 
 def positive_float(name):
-    finite = finite_float(name)
-
-    def conv(s):
-        v = finite(s)
-        if v <= 0:
-            raise argparse.ArgumentTypeError(f"{name} must be positive, not {s!r}")
-        return v
-    return conv
+    return _bounded_float(name, lambda v: v > 0, "be positive")
 
 
 def add_data_arguments(p) -> None:

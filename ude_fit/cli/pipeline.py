@@ -8,12 +8,11 @@ from __future__ import annotations
 
 import sys
 
-from ..data import load
 from ..pipeline import PipelineOptions, run_pipeline
 from ..report.files import provenance
 from ..report.pipeline_files import write_pipeline
 from ..report.pipeline_markdown import headline_text
-from .common import Progress, UsageError, command_line, out_dir
+from .common import command_line, start
 from .options import add_data_arguments, add_fit_arguments, fit_options, positive_int
 
 
@@ -35,13 +34,7 @@ def pipeline_options(args) -> PipelineOptions:
 
 
 def run(args, argv) -> int:
-    try:
-        opts = pipeline_options(args)
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    ds = load(args.data, args.system)       # bad input fails here, before anything is written
-    out = out_dir(args.out)
-    progress = Progress(args.quiet)
+    opts, ds, out, progress = start(args, pipeline_options)
     result = run_pipeline(ds, opts, progress=progress)
     doc = write_pipeline(out, ds, result, provenance(command_line(argv), args.data))
     print(f"wrote {out}/: report.md, metrics.json, diagram.png, fit/, loop/")
