@@ -13,8 +13,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from ..models.mechanistic import SYSTEMS
 from .penalties import Penalty
-
 
 APPROXIMATORS = ("nn", "gp")
 TRAININGS = ("trajectory", "periodic")
@@ -24,7 +24,7 @@ MECHANISTIC = ("equation", "periodic")
 @dataclass(frozen=True)
 class TrainConfig:
     """How one correction is trained: the network, the optimiser's steps, the shooting
-    losses' weights and the penalties (:mod:`._penalties`). A field left at None takes its
+    losses' weights and the penalties (:mod:`.penalties`). A field left at None takes its
     system's default (:data:`SYSTEM_DEFAULTS`, applied by :meth:`for_system`). Checks its
     own fields when built (ValueError naming the field)."""
     width: int = 12
@@ -136,8 +136,8 @@ class FitOptions:
     reference_fold: float | None = None   # known fold airspeed (m/s)
 
     def __post_init__(self):
-        if self.system not in ("flutter", "oscillator"):
-            raise ValueError(f"--system must be flutter or oscillator, not {self.system!r}")
+        if self.system not in SYSTEMS:
+            raise ValueError(f"--system must be {' or '.join(SYSTEMS)}, not {self.system!r}")
         if self.approximator not in APPROXIMATORS:
             raise ValueError(f"--approximator must be nn or gp, not {self.approximator!r}")
         if self.training not in TRAININGS:
@@ -151,6 +151,10 @@ class FitOptions:
             if isinstance(v, bool) or not isinstance(v, int) or v < least:
                 raise ValueError(f"--{name.replace('_', '-')} must be an integer at least "
                                  f"{least}, not {v!r}")
+        for name in ("adequacy_factor", "adequacy_floor"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a number at least 0, not {v!r}")
         if not isinstance(self.train, TrainConfig):
             raise ValueError(f"train must be a TrainConfig, not {self.train!r}")
         for name in ("reference_hopf", "reference_fold"):
