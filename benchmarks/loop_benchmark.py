@@ -24,19 +24,18 @@ import sys
 import tempfile
 import time
 
+import jax
 import numpy as np
 
-import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
-
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from rig_sim.physics.flutter import FlutterParams  # noqa: E402
 from tests.ude_fixtures import write_truth_campaign  # noqa: E402
 from ude_fit import load, training_data  # noqa: E402
-from ude_fit.training.identify import regression  # noqa: E402
-from ude_fit.models.library import columns, LIBRARY, states_of, STRUCTURAL  # noqa: E402
 from ude_fit.discovery.loop import close_loop, metrics_document  # noqa: E402
+from ude_fit.models.library import LIBRARY, STRUCTURAL, columns, states_of  # noqa: E402
+from ude_fit.training.identify import regression  # noqa: E402
 
 CASES = {
     "heave_cubic=5e5": (None, "heave_cubic", -5.0e5),

@@ -23,7 +23,8 @@ import sys
 import tempfile
 import time
 
-import jax  # noqa: E402
+import jax  # noqa: E402  (after the imports above, before any array)
+
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -41,7 +41,8 @@ import tempfile
 import time
 from pathlib import Path
 
-import jax  # noqa: E402
+import jax  # noqa: E402  (after the imports above, before any array)
+
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 REPO = Path(__file__).resolve().parents[1]

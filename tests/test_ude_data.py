@@ -22,7 +22,8 @@ from ude_fit.data.lee import load_lee
 from ude_fit.data.load import load
 from ude_fit.data.orbit import DataError, Orbit, OrbitDataset
 
-import jax  # noqa: E402
+import jax  # noqa: E402  (after the imports above, before any array)
+
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 LEE_STABLE_V = [20.7, 21.5, 22.4, 23.2]                      # README table, m/s

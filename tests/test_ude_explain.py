@@ -12,7 +12,8 @@ from ude_fit import load, training_data
 from ude_fit.discovery.explain import select
 from ude_fit.models.library import lag, LIBRARY, sample_states
 
-import jax  # noqa: E402
+import jax  # noqa: E402  (after the imports above, before any array)
+
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 

@@ -21,7 +21,8 @@ from ude_fit import cli
 from ude_fit.training.penalties import EnergyRising, WeightDecay
 from ude_fit.training.optimise import minimize
 
-import jax  # noqa: E402
+import jax  # noqa: E402  (after the imports above, before any array)
+
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 AIRSPEEDS = (17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0, 23.6)

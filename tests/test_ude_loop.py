@@ -22,7 +22,8 @@ from rig_sim.physics.flutter import FlutterParams
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import cli
 
-import jax  # noqa: E402
+import jax  # noqa: E402  (after the imports above, before any array)
+
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 SIGMA = 0.02

@@ -19,7 +19,8 @@ from ude_fit.models.ude import UDE
 from ude_fit.report.plots import (choose_orbits, diagram_figure, DPI, phase_figure, plot_diagram,
                                   plot_phase_portraits, stability_runs)
 
-import jax  # noqa: E402
+import jax  # noqa: E402  (after the imports above, before any array)
+
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
