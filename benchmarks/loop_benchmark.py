@@ -24,16 +24,18 @@ import sys
 import tempfile
 import time
 
+import jax
 import numpy as np
 
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from rig_sim.physics.flutter import FlutterParams  # noqa: E402
 from tests.ude_fixtures import write_truth_campaign  # noqa: E402
 from ude_fit import load, training_data  # noqa: E402
-from ude_fit._identify import regression  # noqa: E402
-from ude_fit._library import LIBRARY, STRUCTURAL, columns, states_of  # noqa: E402
-from ude_fit._loop import close_loop, metrics_document  # noqa: E402
+from ude_fit.discovery.loop import close_loop, metrics_document  # noqa: E402
+from ude_fit.models.library import LIBRARY, STRUCTURAL, columns, states_of  # noqa: E402
+from ude_fit.training.identify import regression  # noqa: E402
 
 CASES = {
     "heave_cubic=5e5": (None, "heave_cubic", -5.0e5),
@@ -158,7 +160,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--seeds", type=int, default=3, help="campaign seeds per case (default 3)")
     args = p.parse_args()
-    from ude_fit._io import _version
+    from ude_fit.model_file import _version
     out = {"benchmark": "loop", "version": _version(), "sigma": 0.02,
            "cases": run(args.seeds)}
     print(json.dumps(out, indent=1))

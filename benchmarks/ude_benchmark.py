@@ -23,6 +23,10 @@ import sys
 import tempfile
 import time
 
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
@@ -34,7 +38,7 @@ def _child(spec: dict) -> dict:
     """Run one fit in this (fresh) process; returns its figures."""
     t_import = time.perf_counter()
     from ude_fit import FitOptions, TrainConfig, fit, load
-    from ude_fit._continuation import trace_flutter
+    from ude_fit.analysis.continuation import trace_flutter
     ds = load([spec["data"]], "flutter")
     cfg = TrainConfig(**spec.get("train", {}))
     opts = FitOptions("flutter", approximator=spec["approximator"], training=spec["training"],
@@ -45,10 +49,10 @@ def _child(spec: dict) -> dict:
 
     def progress(event, **kw):
         if event == "start_done" and "t" not in first_ok:
-            m = kw["record"].get("metrics") or {}
+            m = kw["record"].metrics or {}
             if m.get("branch_rms") is not None and m["branch_rms"] <= 0.01 and m["missed"] == 0:
                 first_ok["t"] = time.perf_counter() - t0
-                first_ok["start"] = kw["record"]["start"]
+                first_ok["start"] = kw["record"].start
 
     res = fit(ds, opts, reference=spec["truth"], progress=progress)
     total = time.perf_counter() - t0

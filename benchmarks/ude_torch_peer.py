@@ -41,6 +41,10 @@ import tempfile
 import time
 from pathlib import Path
 
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
@@ -57,9 +61,9 @@ SEED = 0
 
 def prepare(path):
     """Dataset, training arrays, identified mechanistic model and the diagram ranges."""
-    from ude_fit._data import load
-    from ude_fit._fit import diagram_ranges
-    from ude_fit._identify import identify, training_data
+    from ude_fit.data.load import load
+    from ude_fit.analysis.diagram import diagram_ranges
+    from ude_fit.training.identify import identify, training_data
 
     ds = load([path], "flutter")
     data = training_data(ds, n=SAMPLES)
@@ -72,8 +76,8 @@ def evaluate(model, ds, data, ranges) -> dict:
     """ude_fit's yardstick: traced diagram, then branch errors at every measured orbit."""
     import numpy as np
 
-    from ude_fit._fit import trace_diagram
-    from ude_fit._metrics import branch_metrics, locations
+    from ude_fit.analysis.diagram import trace_diagram
+    from ude_fit.analysis.metrics import branch_metrics, locations
 
     scales = np.asarray(data.y_scale)
     t0 = time.perf_counter()
@@ -94,8 +98,9 @@ def evaluate(model, ds, data, ranges) -> dict:
 def jax_worker(path: str) -> None:
     import jax
 
-    from ude_fit._models import UDE
-    from ude_fit._train import TrainConfig, train_ude
+    from ude_fit.models.ude import UDE
+    from ude_fit.training.options import TrainConfig
+    from ude_fit.training.train import train_ude
 
     ds, data, mech, _, ranges, _ = prepare(path)
     t0 = time.perf_counter()
@@ -288,7 +293,8 @@ def to_ude(mech, mlp, scaling: dict):
     import jax
     import jax.numpy as jnp
 
-    from ude_fit._models import UDE, MLPCorrection, Scaling
+    from ude_fit.models.corrections import MLPCorrection, Scaling
+    from ude_fit.models.ude import UDE
 
     lin = [m for m in mlp if hasattr(m, "weight")]
     sc = Scaling(*(jnp.asarray(scaling[k]) for k in ("z_mean", "z_scale", "out_scale")))
@@ -367,7 +373,7 @@ def run(path: str, torch) -> dict:
     torch.set_num_threads(THREADS)
     torch.manual_seed(SEED)
     ds, data, mech, ident, ranges, ident_s = prepare(path)
-    from ude_fit._models import parameters_of
+    from ude_fit.models.mechanistic import parameters_of
     try:
         mlp, scaling, info, vf = torch_fit(data, parameters_of(mech))
         model = to_ude(mech, mlp, scaling)

@@ -12,6 +12,10 @@ import pytest
 from tests.auto07p_reference import (NOMINAL, auto_available, auto_flutter_reference,
                                      auto_unavailable_reason, eigen_hopf)
 
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
+
 pytestmark = pytest.mark.skipif(not auto_available(),
                                 reason=f"AUTO-07p unavailable: {auto_unavailable_reason()}")
 

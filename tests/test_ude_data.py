@@ -16,8 +16,15 @@ import pytest
 import scipy.io
 
 from tests import ude_fixtures as F
-from ude_fit._data import (K, DataError, Orbit, OrbitDataset, evaluate, fourier_fit, load,
-                           load_campaign, load_lee, refine_frequency, shift_phase)
+from ude_fit._fourier import evaluate, fourier_fit, K, refine_frequency, shift_phase
+from ude_fit.data.campaign import load_campaign
+from ude_fit.data.lee import load_lee
+from ude_fit.data.load import load
+from ude_fit.data.orbit import DataError, Orbit, OrbitDataset
+
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 LEE_STABLE_V = [20.7, 21.5, 22.4, 23.2]                      # README table, m/s
 LEE_UNSTABLE_V = [20.7, 21.6, 22.4, 23.3, 24.1, 25.0, 25.8]
@@ -355,7 +362,8 @@ def test_bad_inputs_are_one_line_data_errors(tmp_path, flutter_truth, oscillator
     assert "not a lee2020" in _one_line_error([str(other_mat)])
     empty_dir = tmp_path / "empty"
     empty_dir.mkdir()
-    assert "without .mat files" in _one_line_error([str(empty_dir)])
+    msg = _one_line_error([str(empty_dir)])                # names both kinds it looked for
+    assert "campaign files (.h5, .hdf5)" in msg and ".mat files" in msg
 
     assert "load one system" in _one_line_error([str(flutter_truth[0]), str(oscillator_truth[0])])
     assert "oscillator was asked for" in _one_line_error([str(flutter_truth[0])], "oscillator")
@@ -376,3 +384,14 @@ def test_a_campaign_without_complete_ok_points_is_refused(tmp_path, oscillator_t
         f["points"][names[-1]].attrs["complete"] = False     # cut short by a kill
     assert len(load_campaign(path)) == 0                     # a campaign just started is fine
     assert "no complete points" in _one_line_error([str(path)])
+
+
+def test_one_fourier_convention_harmonics_inverts_evaluate():
+    """Coefficients are the last axis everywhere: harmonics of the samples of a series
+    give back its coefficients, and amplitude reads the first harmonic from them."""
+    from ude_fit._fourier import amplitude, harmonics
+    c = np.random.default_rng(0).normal(size=(3, 2 * K + 1))
+    phi = 2 * np.pi * np.arange(32) / 32
+    samples = evaluate(c, phi).T                         # (32 phases, 3 coordinates)
+    np.testing.assert_allclose(harmonics(samples), c, atol=1e-12)
+    np.testing.assert_allclose(amplitude(c), np.hypot(c[:, 1], c[:, K + 1]))

@@ -9,8 +9,12 @@ import pytest
 
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import load, training_data
-from ude_fit._explain import select
-from ude_fit._library import LIBRARY, lag, sample_states
+from ude_fit.discovery.explain import select
+from ude_fit.models.library import lag, LIBRARY, sample_states
+
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +39,7 @@ PLANTED = [
 
 def band(S, x):
     """What a K-harmonic measurement shows of a force: its first 7 harmonics per orbit."""
-    from ude_fit._library import band_limited
+    from ude_fit.models.library import band_limited
     return band_limited(np.asarray(x, float)[:, None], S["n"])[:, 0]
 
 
@@ -105,7 +109,7 @@ def test_wrong_sign_dissipation_is_not_admitted(states):
 def test_jones_wake_states_solve_their_own_dynamics(states):
     """The unsteady-aerodynamics candidate's periodic wake states satisfy the hidden
     dynamics the refined model integrates (w'' = u - (c2 + c4) V/b w' - c2 c4 (V/b)^2 w)."""
-    from ude_fit._library import JONES_AERO
+    from ude_fit.models.library import JONES_AERO
     S, _ = states
     Z = JONES_AERO.states(S, None)
     n = S["n"]
@@ -130,8 +134,8 @@ def test_a_learnt_correction_is_explained_like_a_residual(tmp_path):
     import json
 
     from ude_fit import UDE, MLPCorrection, cli, flutter_qs, save_model
-    from ude_fit._explain import explain
-    from ude_fit._models import Scaling
+    from ude_fit.discovery.explain import explain
+    from ude_fit.models.corrections import Scaling
     path = tmp_path / "f.h5"
     write_truth_campaign(path, "flutter", airspeeds=(18.0, 20.0, 22.0, 23.6))
     data = training_data(load([path], "flutter"))

@@ -16,9 +16,14 @@ import pytest
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import (DataError, Diverged, FitOptions, TrainConfig, fit, hopf_point, load,
                      load_model)
-from ude_fit import _fit as fit_module
+from ude_fit import fitting as fit_module
 from ude_fit import cli
-from ude_fit._train import minimize
+from ude_fit.training.penalties import EnergyRising, WeightDecay
+from ude_fit.training.optimise import minimize
+
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 AIRSPEEDS = (17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0, 23.6)
 
@@ -169,8 +174,8 @@ def test_regularity_penalties_vanish_for_no_correction_and_see_a_linear_one():
     import jax
     import jax.numpy as jnp
     from ude_fit import UDE, flutter_qs
-    from ude_fit._models import Scaling
-    from ude_fit._train import Regularity, _equilibrium_penalty, _smoothness_penalty
+    from ude_fit.models.corrections import Scaling
+    from ude_fit.training.penalties import EquilibriumPenalty, Regularity, SmoothnessPenalty
 
     class Poly(eqx.Module):
         c: tuple = eqx.field(static=True)
@@ -185,8 +190,8 @@ def test_regularity_penalties_vanish_for_no_correction_and_see_a_linear_one():
     ys = jax.random.normal(jax.random.PRNGKey(0), (20, 4))
     reg = Regularity(jnp.linspace(10.0, 30.0, 16), ys, jnp.ones(4), jnp.asarray(5.0),
                      jnp.full(20, 20.0), jnp.ones(16), jnp.asarray(15.0))
-    pen = lambda c: (float(_equilibrium_penalty(UDE(flutter_qs(), Poly(c, sc)), reg)),
-                     float(_smoothness_penalty(UDE(flutter_qs(), Poly(c, sc)), reg)))
+    pen = lambda c: (float(EquilibriumPenalty(1.0).value(UDE(flutter_qs(), Poly(c, sc)), reg)),
+                     float(SmoothnessPenalty(1.0).value(UDE(flutter_qs(), Poly(c, sc)), reg)))
     assert pen((0.0, 0.0, 0.0)) == (0.0, 0.0)
     lin, smooth = pen((1.0, 0.0, 0.0))
     assert lin > 0 and smooth == pytest.approx(0.0, abs=1e-20)
@@ -218,7 +223,8 @@ def test_rest_stability_penalty_sees_only_an_equilibrium_unstable_where_labelled
     import equinox as eqx
     import jax.numpy as jnp
     from ude_fit import UDE, flutter_qs
-    from ude_fit._train import Regularity, _rest_penalty
+    from ude_fit.training.penalties import Regularity, RestStability
+    _rest_penalty = RestStability(1.0).value
 
     V = jnp.linspace(15.0, 28.0, 14)
     reg = lambda upto: Regularity(V, jnp.zeros((1, 4)), jnp.ones(4), jnp.asarray(5.0),
@@ -245,7 +251,7 @@ def test_rest_stability_penalty_sees_only_an_equilibrium_unstable_where_labelled
 
 
 def test_hopf_from_unstable_orbits_is_where_their_amplitude_squared_reaches_zero():
-    from ude_fit._train import _hopf_from_unstable
+    from ude_fit.training.penalties import _hopf_from_unstable
 
     P = np.array([20.7, 22.0, 24.0, 25.0, 25.8, 21.0])
     amp = np.sqrt(np.maximum(0.0, 4e-4 * (26.3 - P)))
@@ -261,7 +267,7 @@ def test_polynomial_param_correction_is_polynomial_in_the_parameter_and_reloads(
     import jax
     import jax.numpy as jnp
     from ude_fit import UDE, flutter_qs, save_model
-    from ude_fit._models import PolynomialParamCorrection, Scaling
+    from ude_fit.models.corrections import PolynomialParamCorrection, Scaling
 
     k1, k2, k3 = jax.random.split(jax.random.PRNGKey(3), 3)
     sc = Scaling(jax.random.normal(k1, (5,)), 1.0 + jnp.abs(jax.random.normal(k2, (5,))),
@@ -327,7 +333,7 @@ def test_diffrax_trajectory_equals_the_shooting_map():
     import jax.numpy as jnp
 
     from ude_fit import UDE, Drive, flutter_qs
-    from ude_fit._flow import diffrax_samples, rk4_orbit
+    from ude_fit.models.flow import diffrax_samples, rk4_orbit
     model, drive = UDE(flutter_qs()), Drive.of(20.0)
     y0 = jnp.array([0.01, 0.02, 0.0, 0.1])
     _, ys = rk4_orbit(model, y0, 0.42, drive, 32 * 4)
@@ -339,7 +345,7 @@ def test_trajectory_training_lowers_the_trajectory_error(tmp_path):
     import jax
 
     from ude_fit import UDE, identify, train_ude, training_data
-    from ude_fit._train import _trainable_spec, _trajectory_loss, new_correction
+    from ude_fit.training.train import _trainable_spec, new_correction, trajectory_loss
     write_truth_campaign(tmp_path / "f.h5", "flutter", airspeeds=(18.0, 21.0, 23.6))
     data = training_data(load([tmp_path / "f.h5"], "flutter"))
     mech, _ = identify(data, "flutter")
@@ -350,7 +356,7 @@ def test_trajectory_training_lowers_the_trajectory_error(tmp_path):
 
     def loss(m):
         tr, st = eqx.partition(m.correction, _trainable_spec(m.correction))
-        return float(_trajectory_loss({"corr": tr}, st, mech, data, cfg.substeps))
+        return float(trajectory_loss({"corr": tr}, st, mech, data, cfg.substeps))
 
     fresh = UDE(mech, new_correction(UDE(mech), data, key, cfg))
     assert loss(model) < 0.5 * loss(fresh)
@@ -362,7 +368,7 @@ def test_a_point_at_a_model_fold_takes_the_stability_of_its_side(monkeypatch):
     nearest traced orbit there can lie on the stable side, and must not relabel the point."""
     from types import SimpleNamespace
 
-    from ude_fit import _metrics
+    from ude_fit.analysis import metrics as _metrics
 
     branch = SimpleNamespace(param=np.array([20.70, 20.62, 20.70]),
                              amplitude=np.array([0.030, 0.027, 0.024]),
@@ -395,8 +401,8 @@ def test_a_closed_branch_is_traced_once_and_its_folds_counted_once():
     is the circle x^2 + (p - 20)^2 = 1 in (state, parameter): two folds, at p = 19 and 21."""
     from types import SimpleNamespace
 
-    from ude_fit import _continuation as cont
-    from ude_fit._metrics import locations
+    from ude_fit.analysis import continuation as cont
+    from ude_fit.analysis.metrics import locations
 
     class Circle:
         par_index = 1
@@ -429,7 +435,7 @@ def test_data_scatter_is_the_residual_standard_deviation_about_quadratics():
     comes back whole, its sum of squares divided by the degrees of freedom left (4 + 7
     points, 3 + 3 taken by the two fits), not by the number of points."""
     from ude_fit import Orbit, OrbitDataset
-    from ude_fit._fit import data_scatter
+    from ude_fit.analysis.adequacy import data_scatter
 
     def orbit(V, A, stable):
         c = np.zeros((2, 15))
@@ -451,7 +457,7 @@ def test_data_scatter_is_the_residual_standard_deviation_about_quadratics():
 def test_a_start_that_snakes_through_the_points_does_not_set_the_bar():
     """Within twice the best start's error: the best *credible* start's. A start with 11
     folds fits the points closer than a smooth diagram can, and is not adequate itself."""
-    from ude_fit._fit import judge_starts
+    from ude_fit.analysis.adequacy import judge_starts
 
     mech = {"branch_rms": 0.15, "missed": 3, "folds": [15.8], "isola_folds": []}
 
@@ -476,7 +482,7 @@ def test_energy_shape_penalty_sees_only_work_convex_in_amplitude_squared():
     import equinox as eqx
     import jax.numpy as jnp
     from ude_fit import UDE, flutter_qs
-    from ude_fit._train import Regularity, _energy_shape_penalty
+    from ude_fit.training.penalties import EnergyShape, Regularity
 
     class Damping(eqx.Module):
         c: tuple = eqx.field(static=True)
@@ -495,7 +501,7 @@ def test_energy_shape_penalty_sees_only_work_convex_in_amplitude_squared():
                      jnp.ones(4), jnp.asarray(15.0), jnp.asarray(shape[None]),
                      jnp.asarray([22.0]), jnp.asarray([2 * np.pi / 15.0 / n]),
                      jnp.asarray(np.linspace(0.004, 0.13, 24)))
-    pen = lambda c: float(_energy_shape_penalty(UDE(flutter_qs(), Damping(c)), reg))
+    pen = lambda c: float(EnergyShape(1.0).value(UDE(flutter_qs(), Damping(c)), reg))
     assert pen((0.0, 0.0, 0.0)) == 0.0
     assert pen((5.0, 0.0, 0.0)) == pytest.approx(0.0, abs=1e-12)
     # damping -c(u): work / A^2 ~ -c(u); concave when c is convex
@@ -512,7 +518,7 @@ def test_energy_rising_penalty_sees_energy_input_falling_with_airspeed():
     import equinox as eqx
     import jax.numpy as jnp
     from ude_fit import UDE, flutter_qs
-    from ude_fit._train import Regularity, _energy_rising_penalty
+    from ude_fit.training.penalties import EnergyRising, Regularity
 
     class SpeedDamping(eqx.Module):
         k: float = eqx.field(static=True)
@@ -532,8 +538,8 @@ def test_energy_rising_penalty_sees_energy_input_falling_with_airspeed():
                      jnp.asarray([22.0]), jnp.asarray([dt]), jnp.asarray(amps),
                      rising_V=jnp.asarray(V[V >= 22.0 - 0.5 * 4.0]))
     mech = flutter_qs()
-    pen = lambda k: float(_energy_rising_penalty(UDE(mech, None if k is None
-                                                     else SpeedDamping(k)), reg))
+    pen = lambda k: float(EnergyRising(1.0).value(UDE(mech, None if k is None
+                                                        else SpeedDamping(k)), reg))
 
     # independent: D(V) = -<q' . (B(V) q' + S(V) q)> (stiffness and inertia do no net
     # work on a closed orbit; the model is linear but for the pitch spring, conservative)
@@ -555,7 +561,7 @@ def test_aerofoil_data_with_both_stabilities_needs_a_fold():
     adequate on such data, however close it fits; without that need (only one stability
     measured) the same start is."""
     from ude_fit import Orbit, OrbitDataset
-    from ude_fit._fit import judge_starts, needs_fold
+    from ude_fit.analysis.adequacy import judge_starts, needs_fold
 
     mech = {"branch_rms": 0.15, "missed": 0, "folds": [15.8], "isola_folds": []}
     no_fold = {"branch_rms": 0.02, "missed": 0, "folds": [], "isola_folds": []}
@@ -571,3 +577,61 @@ def test_aerofoil_data_with_both_stabilities_needs_a_fold():
     both = OrbitDataset("flutter", [orbit(True), orbit(False)], ["synthetic"])
     assert needs_fold(both)
     assert not needs_fold(OrbitDataset("flutter", [orbit(False), orbit(False)], ["synthetic"]))
+
+
+def test_energy_rising_acts_in_the_periodic_stage(tmp_path):
+    """Every penalty acts in every stage it names: the periodic loss with --energy-rising
+    W > 0 exceeds the one without by W times the penalty, for a correction that takes
+    energy out as the airspeed grows. Until the options were typed, the periodic stage
+    read the weight from a 4-item slice of a 9-item tuple that never held it, and the two
+    losses were equal."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from ude_fit import UDE, identify, training_data
+    from ude_fit.training.penalties import regularity_points
+    from ude_fit.training.train import periodic_loss
+
+    class SpeedDamping(eqx.Module):
+        k: float = eqx.field(static=True)
+
+        def __call__(self, z):            # heave force k (V - 20) h': work k (V - 20) <h'^2>
+            return jnp.stack([self.k * (z[4] - 20.0) * z[2], 0.0 * z[4]])
+
+    write_truth_campaign(tmp_path / "f.h5", "flutter", airspeeds=(18.0, 21.0, 23.6))
+    data = training_data(load([tmp_path / "f.h5"], "flutter"))
+    mech, _ = identify(data, "flutter")
+    corr = SpeedDamping(-50.0)
+    trainable, static = eqx.partition(corr, eqx.is_inexact_array)
+    params = {"corr": trainable, "dy0": jnp.zeros(data.ys[:, 0, :].shape),
+              "dT": jnp.zeros(data.period.shape)}
+    reg = regularity_points(data)
+    rising = EnergyRising(1e4)
+
+    def loss(penalties):
+        c = TrainConfig(penalties=penalties).for_system("flutter")
+        return float(periodic_loss(params, static, mech, data, c, reg))
+
+    violation = float(rising.value(UDE(mech, corr), reg))
+    assert violation > 0
+    assert loss((rising,)) == pytest.approx(loss(()) + 1e4 * violation, rel=1e-9)
+
+
+@pytest.mark.parametrize("options", [
+    dict(system="oscillator", train=TrainConfig(penalties=(EnergyRising(1.0),))),
+    dict(system="flutter", approximator="gp", train=TrainConfig(penalties=(EnergyRising(1.0),))),
+    dict(system="flutter", approximator="gp", train=TrainConfig(penalties=(WeightDecay(1.0),))),
+    dict(system="oscillator", reference_hopf=20.0),
+    dict(system="flutter", starts=0),
+])
+def test_fit_options_reject_what_does_not_apply(options):
+    """One place checks a fit's options: a library user gets the ValueError the command
+    line prints (NN-only penalties with the GP, aerofoil-only ones on the oscillator)."""
+    with pytest.raises(ValueError):
+        FitOptions(**options)
+
+
+def test_a_penalty_weight_must_be_finite_and_not_negative():
+    for w in (-1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="--energy-rising"):
+            EnergyRising(w)

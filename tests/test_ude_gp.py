@@ -16,7 +16,9 @@ import pytest
 import scipy.linalg
 import scipy.optimize
 
-from ude_fit._gp import GPCorrection, _nlml_fast, fit_gp, neg_log_marginal_likelihood
+from ude_fit.training.gp import _nlml_fast, fit_gp, GPCorrection, neg_log_marginal_likelihood
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 SIGMA = 0.05                         # observation noise of the main data set
 BOX = np.array([2.0, 3.0, 1.5])      # inputs uniform in [-BOX, BOX]

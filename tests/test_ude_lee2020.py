@@ -4,7 +4,7 @@ mechanistic and UDE models fitted with `ude-fit fit`, as a user would run it on 
 As in the paper, the experiment needs a wider network than the simulations (2 x 48 sigmoid
 units); five starts, the adequacy check keeps the best. On these few, scattered points an
 unregularised network snakes through them (1 of 5 starts adequate), so the fit runs with
-the energy-balance penalties README recommends for wind-tunnel data: the equilibrium stable
+the energy-balance penalties docs/fitting.md describes for wind-tunnel data: the equilibrium stable
 where the unstable orbits surround it (--rest-stability), the net work per cycle concave in
 amplitude squared (--energy-shape) and rising with the airspeed (--energy-rising).
 """
@@ -17,6 +17,13 @@ import pytest
 
 from ude_fit import cli
 
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
+
+
+# the fit takes 6-16 min on 2 shared cores since --energy-rising acts in both stages
+pytestmark = pytest.mark.timeout(2400)
 
 REGULARISED = ["--rest-stability", "30", "--energy-shape", "3", "--energy-rising", "10000"]
 
@@ -51,7 +58,7 @@ def test_ude_reproduces_every_point_with_its_stability(lee_fit):
     assert m["ude"]["branch_rms"] < m["mechanistic"]["branch_rms"]
 
 
-def test_at_least_3_of_5_starts_adequate(lee_fit, capsys):
+def test_the_kept_start_is_adequate_with_the_subcritical_picture(lee_fit, capsys):
     _, m, _ = lee_fit
     with capsys.disabled():
         print("\nlee2020 model2: mechanistic branch RMS "
@@ -61,9 +68,16 @@ def test_at_least_3_of_5_starts_adequate(lee_fit, capsys):
                           f"{r['metrics']['missed']}/{r['metrics']['fold_count']} folds"
                           f"{'*' if r['adequate'] else ''}"
                           for r in m["starts"]["records"] if r.get("metrics")))
-    assert m["starts"]["adequate"] >= 3, m["starts"]["records"]
     kept = m["ude"]
     # the kept diagram is the subcritical picture: a fold, and the Hopf point beyond the
     # last unstable orbit (25.8 m/s), near where the shrinking unstable orbits point (26.3)
     assert kept["adequate"] and 1 <= len(kept["folds"]) + len(kept["isola_folds"]) <= 2
     assert 25.8 < kept["hopf"]["model"] < 27.5
+
+
+@pytest.mark.xfail(strict=True, reason="measured 2 of 5 on seed 0 once --energy-rising also acts "
+                   "in the periodic stage (the 3 of 5 were measured with it silently off there; "
+                   "issue 16); issue 17 replaces these hand-set weights")
+def test_at_least_3_of_5_starts_adequate(lee_fit):
+    _, m, _ = lee_fit
+    assert m["starts"]["adequate"] >= 3, m["starts"]["records"]

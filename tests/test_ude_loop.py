@@ -22,6 +22,10 @@ from rig_sim.physics.flutter import FlutterParams
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import cli
 
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
+
 SIGMA = 0.02
 HELD = 0.2       # a point the board could not hold on its orbit is not logged (as in CBC)
 K_ALPHA = FlutterParams().k_alpha      # the spring a freeplay gap takes out
@@ -107,7 +111,7 @@ def test_planted_effect_is_named_estimated_and_fixes_the_diagram(loops, effect):
 def test_clean_rig_reports_no_catalogue_effect(loops):
     """The clean aerofoil differs from the quasi-steady model only by its unsteady
     aerodynamics: that is what the loop may add, and it must say so."""
-    from ude_fit._loop import catalogue_keys
+    from ude_fit.discovery.loop import catalogue_keys
     rc, m, out, _ = loops["clean"]
     assert rc == 0
     catalogue = set(catalogue_keys("flutter"))

@@ -14,6 +14,10 @@ import pytest
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import cli
 
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
+
 AIRSPEEDS = (18.0, 19.5, 21.0, 22.5, 23.6)
 SIGMAS = (0.02, 0.04)
 

@@ -26,7 +26,9 @@ import pytest
 from rig_sim.physics.oscillator import OscillatorParams, oscillator_kernel_params
 from tests.ude_fixtures import oscillator_curve, write_truth_campaign
 from ude_fit import FitOptions, fit, load
-from ude_fit._continuation import trace_forced
+from ude_fit.analysis.continuation import trace_forced
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 DATASETS = {"narrow": (22.5, 23.0), "wide": (20.0, 22.0, 24.0, 26.0)}
 PER_FREQ = 5

@@ -9,13 +9,19 @@ import numpy as np
 import pytest
 
 from tests import ude_fixtures as F
-from ude_fit._continuation import Branch
-from ude_fit._data import NCOEF, Orbit, OrbitDataset, load
-from ude_fit._fit import diagram_ranges, trace_diagram
-from ude_fit._identify import identify, training_data
-from ude_fit._models import UDE
-from ude_fit._plots import (DPI, choose_orbits, diagram_figure, phase_figure, plot_diagram,
-                            plot_phase_portraits, stability_runs)
+from ude_fit.analysis.continuation import Branch
+from ude_fit._fourier import NCOEF
+from ude_fit.data.load import load
+from ude_fit.data.orbit import Orbit, OrbitDataset
+from ude_fit.analysis.diagram import diagram_ranges, trace_diagram
+from ude_fit.training.identify import identify, training_data
+from ude_fit.models.ude import UDE
+from ude_fit.report.plots import (choose_orbits, diagram_figure, DPI, phase_figure, plot_diagram,
+                                  plot_phase_portraits, stability_runs)
+
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 BLUE = mcolors.to_rgba("tab:blue")       # the mechanistic model's colour

@@ -1,34 +1,43 @@
 """Offline fitting of mechanistic and universal-differential-equation models to limit cycles.
 
-Data flow: files -> :class:`OrbitDataset` -> :func:`identify` (mechanistic) -> UDE starts
-(:func:`train_ude` or :func:`fit_gp`) -> continuation (:func:`trace_flutter`,
-:func:`trace_forced`) -> metrics -> report. :func:`fit` runs the whole chain.
-Models are immutable pytrees (equinox); everything else is functions over them.
+Data flow (one sub-package each): ``data`` (files -> :class:`OrbitDataset`) -> ``models``
+(mechanistic, corrections, UDE) -> ``training`` (:class:`FitOptions`, penalties, losses,
+:func:`identify`, :func:`train_ude`, :func:`fit_gp`) -> ``analysis`` (continuation,
+diagrams, metrics, adequacy) -> :func:`fit` -> ``discovery`` (explain, refine, loop) ->
+``report``; :func:`run_pipeline` runs the whole offline job, and ``ude_fit.cli`` is the
+command line over it. Models are immutable pytrees (equinox); everything else is
+functions over them.
+
+Precision: ude_fit computes in float64 but importing it changes no JAX setting. The
+command line switches float64 on; a library user calls
+``jax.config.update("jax_enable_x64", True)`` once, before making any array, and the long
+jobs (:func:`fit`, :func:`train_ude`, :func:`run_pipeline`) refuse to run without it.
 """
-import jax as _jax
 
-# Fitting and continuation need float64; ude_fit switches JAX to it on import.
-_jax.config.update("jax_enable_x64", True)
-
-from ._continuation import (Branch, Equilibria, equilibrium_branch, hopf_point,  # noqa: E402
-                            orbit_at, trace_flutter, trace_forced)
-from ._data import (DataError, Orbit, OrbitDataset, load, load_campaign,  # noqa: E402
-                    load_lee)
-from ._fit import (FitOptions, FitResult, diagram_ranges, fit, trace_diagram)  # noqa: E402
-from ._gp import GPCorrection, fit_gp  # noqa: E402
-from ._identify import TrainingData, identify, residual_forces, training_data  # noqa: E402
-from ._io import load_model, save_model  # noqa: E402
-from ._metrics import branch_metrics, estimate_from_data  # noqa: E402
-from ._models import (UDE, Drive, Duffing7, FlutterQS, MLPCorrection, duffing7,  # noqa: E402
-                      flutter_qs, parameters_of)
-from ._train import Diverged, TrainConfig, train_ude  # noqa: E402
+from .analysis import (Branch, Equilibria, branch_metrics, diagram_ranges,
+                       equilibrium_branch, hopf_point, orbit_at, trace_diagram, trace_flutter,
+                       trace_forced)
+from .data import (DataError, Orbit, OrbitDataset, estimate_from_data, load,
+                   load_campaign, load_lee)
+from .fitting import FitResult, StartRecord, fit
+from .pipeline import PipelineOptions, PipelineResult, run_pipeline
+from .model_file import load_model, save_model
+from .models import (UDE, Drive, Duffing7, FlutterQS, MLPCorrection, duffing7,
+                     flutter_qs, parameters_of)
+from .training import (Diverged, EnergyRising, EnergyShape, EquilibriumPenalty,
+                       FitOptions, GPCorrection, RestStability, SmoothnessPenalty,
+                       TrainConfig, TrainingData, WeightDecay, fit_gp, identify,
+                       residual_forces, train_ude, training_data)
 
 __all__ = [
-    "Branch", "DataError", "Diverged", "Drive", "Duffing7", "Equilibria", "FitOptions",
-    "FitResult", "FlutterQS", "GPCorrection", "MLPCorrection", "Orbit", "OrbitDataset",
-    "TrainConfig", "TrainingData", "UDE", "branch_metrics", "diagram_ranges", "duffing7",
-    "equilibrium_branch", "estimate_from_data", "fit", "fit_gp", "flutter_qs", "hopf_point",
-    "identify", "load", "load_campaign", "load_lee", "load_model", "orbit_at",
-    "parameters_of", "residual_forces", "save_model", "trace_diagram", "trace_flutter",
-    "trace_forced", "train_ude", "training_data",
+    "Branch", "DataError", "Diverged", "Drive", "Duffing7", "EnergyRising", "EnergyShape",
+    "Equilibria", "EquilibriumPenalty", "FitOptions", "FitResult", "FlutterQS",
+    "GPCorrection", "MLPCorrection", "Orbit", "OrbitDataset", "PipelineOptions",
+    "PipelineResult", "RestStability",
+    "SmoothnessPenalty", "StartRecord", "TrainConfig", "TrainingData", "UDE", "WeightDecay",
+    "branch_metrics", "diagram_ranges", "duffing7", "equilibrium_branch",
+    "estimate_from_data", "fit", "fit_gp", "flutter_qs", "hopf_point", "identify", "load",
+    "load_campaign", "load_lee", "load_model", "orbit_at", "parameters_of",
+    "residual_forces", "run_pipeline", "save_model", "trace_diagram", "trace_flutter", "trace_forced",
+    "train_ude", "training_data",
 ]

@@ -1,0 +1,119 @@
+"""The command line over the library: ``ude-fit pipeline`` takes every option ``ude-fit
+fit`` takes and hands the library the same options object; bad input is rejected before
+anything is written; folders of campaign files load; the library refuses float32."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import jax
+import pytest
+
+from tests.ude_fixtures import write_truth_campaign
+from ude_fit import EnergyRising, FitOptions, OrbitDataset, load
+from ude_fit.cli import build_parser
+from ude_fit.cli import common as cli_common
+from ude_fit.cli import pipeline as pipeline_cli
+from ude_fit.cli.options import fit_options
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
+
+# every fit option at a value other than its default (the NN approximator's, and the GP's)
+NN_FLAGS = ["--training", "trajectory", "--mechanistic", "periodic", "--starts", "3",
+            "--seed", "7", "--width", "9", "--depth", "3", "--energy-shape", "1.5",
+            "--energy-rising", "2.5", "--rest-stability", "3.5",
+            "--equilibrium-penalty", "4.5", "--smoothness-penalty", "5.5",
+            "--weight-decay", "6.5", "--param-scale", "2", "--param-dependence", "polynomial",
+            "--param-degree", "3", "--reference-hopf", "24.1", "--reference-fold", "20.4"]
+GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
+
+
+def _fit_dests() -> set[str]:
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    return {a.dest for a in sub.choices["fit"]._actions} - {"help", "out", "quiet"}
+
+
+@pytest.mark.parametrize("flags", [NN_FLAGS, GP_FLAGS])
+def test_pipeline_builds_the_options_fit_builds(flags):
+    parser = build_parser()
+    common = ["data.h5", "--system", "flutter", *flags, "--out", "o"]
+    fit_args = parser.parse_args(["fit", *common])
+    pipe_args = parser.parse_args(["pipeline", *common])
+    opts = fit_options(fit_args)
+    assert pipeline_cli.pipeline_options(pipe_args).fit == opts
+    assert opts != FitOptions("flutter")
+
+
+def test_every_fit_flag_is_set_by_the_test_and_taken_by_the_pipeline():
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    pipe = {a.dest for a in sub.choices["pipeline"]._actions}
+    assert _fit_dests() <= pipe
+    flags = {f.lstrip("-").replace("-", "_") for f in NN_FLAGS + GP_FLAGS if f.startswith("--")}
+    assert _fit_dests() - {"data", "system"} == flags
+
+
+def test_pipeline_hands_the_library_the_options(monkeypatch, tmp_path):
+    """Through the command itself: the options object that reaches run_pipeline."""
+    seen = {}
+
+    class Reached(Exception):
+        pass
+
+    def run_pipeline(ds, options, progress=None):
+        seen["options"] = options
+        raise Reached
+
+    monkeypatch.setattr(cli_common, "load", lambda paths, system: OrbitDataset(system, (), ()))
+    monkeypatch.setattr(pipeline_cli, "run_pipeline", run_pipeline)
+    argv = ["pipeline", "data.h5", "--system", "flutter", *NN_FLAGS, "--max-effects", "2",
+            "--out", str(tmp_path / "o"), "--quiet"]
+    args = build_parser().parse_args(argv)
+    with pytest.raises(Reached):
+        pipeline_cli.run(args, argv)
+    expected = fit_options(build_parser().parse_args(
+        ["fit", "data.h5", "--system", "flutter", *NN_FLAGS, "--out", "o"]))
+    assert seen["options"].fit == expected and seen["options"].max_effects == 2
+    assert seen["options"].fit.train.penalty(EnergyRising) == EnergyRising(2.5)
+
+
+def _run(*args):
+    return subprocess.run([sys.executable, "-m", "ude_fit.cli", *args], capture_output=True,
+                          text=True, timeout=120)
+
+
+@pytest.mark.parametrize("command", ["fit", "pipeline"])
+def test_bad_input_writes_nothing(tmp_path, command):
+    bad = tmp_path / "notes.h5"
+    bad.write_text("not hdf5")
+    (tmp_path / "empty").mkdir()
+    for data, words in ((bad, ("notes.h5",)), (tmp_path / "empty", (".h5", ".mat"))):
+        out = tmp_path / f"out_{data.name}"
+        r = _run(command, str(data), "--system", "flutter", "--out", str(out))
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert all(w in r.stderr for w in words), r.stderr
+        assert not out.exists()
+
+
+def test_a_folder_of_campaign_files_loads_as_its_files(tmp_path):
+    folder = tmp_path / "campaigns"
+    folder.mkdir()
+    write_truth_campaign(folder / "a.h5", "flutter", airspeeds=(18.0, 21.0))
+    write_truth_campaign(folder / "b.h5", "flutter", airspeeds=(23.6,))
+    ds = load(folder, "flutter")
+    both = load([folder / "a.h5", folder / "b.h5"], "flutter")
+    assert len(ds) == len(both) == 6          # two orbits at each airspeed
+    assert [o.parameter for o in ds] == [o.parameter for o in both]
+
+
+def test_the_library_refuses_to_fit_in_float32():
+    code = ("import ude_fit\n"
+            "try:\n"
+            "    ude_fit.fit(None, ude_fit.FitOptions('flutter'))\n"
+            "except RuntimeError as e:\n"
+            "    assert 'float64' in str(e)\n"
+            "else:\n"
+            "    raise SystemExit('no error')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr

@@ -1,0 +1,98 @@
+"""Adequacy of a fitted start (the paper found single trainings often land in poor local
+minima; see :mod:`ude_fit.fitting`): the data's own scatter, fold counts, the checks a
+start must pass, and the judgement of every start against the best credible one."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..data.orbit import OrbitDataset
+from ..training.options import FitOptions
+
+
+def data_scatter(ds: OrbitDataset) -> float:
+    """How far the measured points themselves lie from smooth branches: the residual
+    standard deviation of a quadratic in the parameter through each stability class (of 4
+    or more points; per frequency for the oscillator), over the largest amplitude. No fit
+    can be asked to be closer to the data than this.
+
+    The residuals' plain RMS would underestimate the scatter: each quadratic is fitted to
+    the very points it is judged on and takes 3 of their degrees of freedom (with 4 points,
+    3 of 4), so the sum of squares is divided by the points left over, as the textbook
+    unbiased estimate of a regression's residual variance does."""
+    A, a_max = ds.amplitudes(), float(ds.amplitudes().max())
+    P = ds.parameters()
+    groups = [np.ones(len(ds), bool)] if ds.system == "flutter" else [
+        np.round(ds.frequencies(), 6) == f for f in ds.frequencies_group()]
+    res, dof = [], 0
+    for g in groups:
+        for label in (True, False):
+            m = g & np.array([o.stable is label for o in ds.orbits])
+            if m.sum() >= 4 and np.ptp(P[m]) > 0:
+                c = np.polyfit(P[m], A[m], 2)
+                res.extend((A[m] - np.polyval(c, P[m])).tolist())
+                dof += int(m.sum()) - 3
+    return float(np.sqrt(np.sum(np.square(res)) / dof) / a_max) if dof > 0 else 0.0
+
+
+def fold_count(m: dict) -> int:
+    """Folds in a model's diagram (every branch, every frequency)."""
+    f = m.get("folds") or []
+    n = sum(len(v) for v in f.values()) if isinstance(f, dict) else len(f)
+    return n + len(m.get("isola_folds") or [])
+
+
+def _credible(m, mech_m, fold_required: bool = False) -> bool:
+    """Every check of adequacy but the comparison with the other starts: nothing missed,
+    no more folds than allowed (and one at least where the data needs one), below the
+    mechanistic model's error (at every frequency)."""
+    if m is None or m["branch_rms"] is None or m["missed"] > 0:
+        return False
+    # stable and unstable orbits of a self-excited system meet at a fold; a diagram whose
+    # stable and unstable branches run side by side out of the window without one claims
+    # bistability at every lower airspeed
+    if fold_required and fold_count(m) == 0:
+        return False
+    # qualitatively the mechanistic model's diagram: at most one extra fold per branch
+    # family (a network that snakes through the points is not a model of them)
+    families = len(mech_m["folds"]) if isinstance(mech_m.get("folds"), dict) else 1
+    if fold_count(m) > fold_count(mech_m) + families:
+        return False
+    mech_rms = mech_m.get("branch_rms")
+    if mech_rms is not None and m["branch_rms"] >= mech_rms:
+        return False
+    # oscillator: better than the mechanistic model at every frequency, not just overall
+    for f, v in (mech_m.get("per_frequency") or {}).items():
+        mine = m["per_frequency"].get(f, {}).get("branch_rms")
+        if v["branch_rms"] is not None and (mine is None or mine >= v["branch_rms"]):
+            return False
+    return True
+
+
+def _is_adequate(m, best_rms, mech_m, opts, scatter: float = 0.0,
+                 fold_required: bool = False) -> bool:
+    """Credible, and within ``adequacy_factor`` of the best credible start's error (or
+    under the floor, or under the data's own scatter)."""
+    return _credible(m, mech_m, fold_required) and m["branch_rms"] <= max(
+        opts.adequacy_factor * best_rms, opts.adequacy_floor, scatter)
+
+
+def judge_starts(start_metrics: list, mech_m: dict, opts: FitOptions,
+                 scatter: float = 0.0, fold_required: bool = False) -> list[bool]:
+    """Adequacy of each start (None for a dropped one). The reference for "within a factor
+    of the best" is the best start that is itself credible: one that snakes through every
+    point (folds the data does not show) fits closer than a model of the physics should,
+    and must not set the bar."""
+    best_rms = min((m["branch_rms"] for m in start_metrics
+                    if _credible(m, mech_m, fold_required)), default=np.inf)
+    return [m is not None and _is_adequate(m, best_rms, mech_m, opts, scatter, fold_required)
+            for m in start_metrics]
+
+
+def needs_fold(ds: OrbitDataset) -> bool:
+    """Aerofoil data with stable and unstable orbits: the branch from the Hopf point turns
+    at a fold to become the stable one, so a diagram needs one."""
+    return ds.system == "flutter" and any(o.stable is True for o in ds) and any(
+        o.stable is False for o in ds)
+
+

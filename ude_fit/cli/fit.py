@@ -1,0 +1,38 @@
+"""``ude-fit fit``: the mechanistic model and a UDE on one dataset, written to a folder."""
+
+from __future__ import annotations
+
+import sys
+
+from ..fitting import fit
+from ..report.files import provenance
+from ..report.fit_files import write_fit
+from ..report.format import pct
+from .common import command_line, start
+from .options import add_data_arguments, add_fit_arguments, fit_options
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("fit", help="fit the mechanistic model and a UDE; write metrics, "
+                       "report, diagrams and the fitted models")
+    add_data_arguments(p)
+    add_fit_arguments(p)
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    p.add_argument("--quiet", action="store_true", help="no progress on the terminal")
+
+
+def run(args, argv) -> int:
+    opts, ds, out, progress = start(args, fit_options)
+    progress.say(f"{len(ds)} orbits loaded ({args.system}); fitting")
+    res = fit(ds, opts, progress=progress)
+    metrics = write_fit(out, ds, res, provenance(command_line(argv), args.data))
+    u = metrics["ude"]
+    print(f"wrote {out}/: metrics.json, report.md, " + ", ".join(metrics["figures"].values())
+          + ", mechanistic.eqx" + (", ude.eqx" if u else ""))
+    print(f"branch RMS error: mechanistic {pct(metrics['mechanistic']['branch_rms'])}, "
+          f"UDE {pct(u['branch_rms']) if u else 'no model'}; adequate starts "
+          f"{metrics['starts']['adequate']}/{opts.starts}")
+    if res.ude is None:
+        print("ude-fit: every start diverged; no UDE (see report.md)", file=sys.stderr)
+        return 1
+    return 0

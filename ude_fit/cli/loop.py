@@ -1,0 +1,94 @@
+"""``ude-fit refine`` (add named effects, refit, compare) and ``ude-fit loop`` (explain ->
+add the top-ranked effect -> refit, while the diagram improves)."""
+
+from __future__ import annotations
+
+from ..data import load
+from ..discovery.loop import close_loop, fit_udes, parse_add, refine
+from ..report.files import provenance
+from ..report.loop_files import write_loop
+from ..training.options import FitOptions
+from .common import Progress, UsageError, command_line, out_dir
+from .options import add_data_arguments, nonnegative_float, positive_int
+
+
+def add_common(p) -> None:
+    """What explain, refine and loop share."""
+    add_data_arguments(p)
+    p.add_argument("--seed", type=int, default=0, help="random seed of the cross-validation "
+                   "folds and bootstrap (default 0)")
+    p.add_argument("--bootstrap", type=positive_int("--bootstrap"), default=200,
+                   help="bootstrap resamples of the orbits for uncertainties (default 200)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    p.add_argument("--quiet", action="store_true", help="no progress on the terminal")
+
+
+def _add_ude(p) -> None:
+    p.add_argument("--ude", action="store_true",
+                   help="also fit a NN UDE on the mechanistic and on the refined model")
+    p.add_argument("--starts", type=positive_int("--starts"), default=3,
+                   help="UDE starts with --ude (default 3)")
+
+
+def add_parsers(sub) -> None:
+    r = sub.add_parser("refine", help="add named effects to the mechanistic model, refit, "
+                       "and compare before and after")
+    add_common(r)
+    r.add_argument("--add", nargs="+", required=True, metavar="EFFECT[=SHAPE]",
+                   help="library effects to add (see `ude-fit explain`); SHAPE fixes a "
+                   "freeplay gap or lag time constant, otherwise cross-validation picks it")
+    _add_ude(r)
+
+    lp = sub.add_parser("loop", help="explain -> add the top-ranked effect -> refit, while "
+                        "the diagram improves; report before and after")
+    add_common(lp)
+    lp.add_argument("--max-effects", type=positive_int("--max-effects"), default=3,
+                    help="most effects to add (default 3)")
+    lp.add_argument("--min-gain", type=nonnegative_float("--min-gain"), default=0.1,
+                    help="keep an effect only if the branch RMS error falls by this fraction "
+                    "(or fewer points are missed; default 0.1)")
+    _add_ude(lp)
+
+
+def _options(args) -> dict:
+    return {k: v for k, v in vars(args).items() if k not in ("data", "out", "quiet", "command")}
+
+
+def _finish(args, argv, name, ds, result, progress) -> int:
+    out = out_dir(args.out)
+    if args.ude:
+        fit_udes(result, ds, FitOptions(system=args.system, starts=args.starts,
+                                        seed=args.seed), progress=progress)
+    doc = write_loop(out, ds, result, provenance(command_line(argv), args.data), name=name,
+                     options=_options(args))
+    b, a = doc["before"], doc["after"]
+    eff = doc["effect"]
+    print(f"wrote {out}/: metrics.json, report.md, " + ", ".join(doc["figures"].values())
+          + ", " + ", ".join(doc["models"].values()))
+    print(f"effect: {eff['name'] + ' (' + eff['key'] + ')' if eff else 'none added'}; "
+          f"branch RMS error (missed points counted): before "
+          f"{100 * b['branch_rms_with_missed']:.2f} %, after "
+          f"{100 * a['branch_rms_with_missed']:.2f} %")
+    return 0
+
+
+def run_refine(args, argv) -> int:
+    try:
+        add = parse_add(args.system, args.add)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    ds = load(args.data, args.system)
+    progress = Progress(args.quiet)
+    res = refine(ds, args.system, add, seed=args.seed, bootstrap=args.bootstrap,
+                 progress=progress)
+    return _finish(args, argv, "refine", ds, res, progress)
+
+
+def run_loop(args, argv) -> int:
+    if args.min_gain >= 1:
+        raise UsageError(f"--min-gain must be below 1, not {args.min_gain}")
+    ds = load(args.data, args.system)
+    progress = Progress(args.quiet)
+    res = close_loop(ds, args.system, max_effects=args.max_effects, min_gain=args.min_gain,
+                     seed=args.seed, bootstrap=args.bootstrap, progress=progress)
+    return _finish(args, argv, "loop", ds, res, progress)

@@ -1,0 +1,122 @@
+"""The command line's argument types and the one argument group every fitting command
+shares (``ude-fit fit`` and ``ude-fit pipeline``), turned into one :class:`FitOptions`.
+
+Argument types only parse (an integer, a finite number, a sign); what a value means for
+a fit (which penalties suit which system and approximator, ...) is checked once, by
+:class:`FitOptions` itself, whose ValueError the command line prints as its one-line
+usage error.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+SYSTEMS = ("flutter", "oscillator")
+
+
+def positive_int(name):
+    def conv(s):
+        try:
+            v = int(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be an integer, not {s!r}") from None
+        if v < 1:
+            raise argparse.ArgumentTypeError(f"{name} must be at least 1, not {v}")
+        return v
+    return conv
+
+
+def finite_float(name):
+    def conv(s):
+        try:
+            v = float(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a number, not {s!r}") from None
+        if v != v or v in (float("inf"), float("-inf")):
+            raise argparse.ArgumentTypeError(f"{name} must be finite, not {s!r}")
+        return v
+    return conv
+
+
+def _bounded_float(name, ok, must: str):
+    finite = finite_float(name)
+
+    def conv(s):
+        v = finite(s)
+        if not ok(v):
+            raise argparse.ArgumentTypeError(f"{name} must {must}, not {s!r}")
+        return v
+    return conv
+
+
+def nonnegative_float(name):
+    return _bounded_float(name, lambda v: v >= 0, "not be negative")
+
+
+def positive_float(name):
+    return _bounded_float(name, lambda v: v > 0, "be positive")
+
+
+def add_data_arguments(p) -> None:
+    """DATA... and --system, which every command that reads measurements takes."""
+    p.add_argument("data", nargs="+", metavar="DATA",
+                   help="campaign HDF5 files, lee2020 .mat files, or folders of them")
+    p.add_argument("--system", required=True, choices=SYSTEMS)
+
+
+def add_fit_arguments(p) -> None:
+    """Every option of a fit (:class:`FitOptions`): the same flags, the same defaults, for
+    every command that fits."""
+    from ..training.penalties import PENALTIES
+
+    p.add_argument("--approximator", default="nn", choices=("nn", "gp"),
+                   help="the correction: a neural network (default) or a Gaussian process")
+    p.add_argument("--training", default="periodic", choices=("trajectory", "periodic"),
+                   help="NN loss: one-period trajectories from the measured states (the "
+                   "paper's) or closed periodic orbits with stability labels (default)")
+    p.add_argument("--mechanistic", default="equation", choices=("equation", "periodic"),
+                   help="mechanistic identification: least squares on the equation error "
+                   "(default), or that refined by output error on the periodic orbits")
+    p.add_argument("--starts", type=positive_int("--starts"), default=5,
+                   help="random starts; the best adequate one is kept (default 5)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--width", type=positive_int("--width"), default=12,
+                   help="hidden units per layer of the NN (default 12)")
+    p.add_argument("--depth", type=positive_int("--depth"), default=2,
+                   help="hidden layers of the NN (default 2)")
+    for kind in PENALTIES:
+        flag = f"--{kind.option}"
+        p.add_argument(flag, type=nonnegative_float(flag), default=0.0, metavar="W",
+                       help=kind.help)
+    p.add_argument("--param-scale", type=positive_float("--param-scale"), default=1.0,
+                   metavar="F", help="the network's parameter input is standardised by F times "
+                   "its spread in the data; larger F, slower variation with it (default 1)")
+    p.add_argument("--param-dependence", default="input", choices=("input", "polynomial"),
+                   help="how the NN correction depends on the bifurcation parameter: as an "
+                   "input like the states (default), or as a polynomial in it "
+                   "(--param-degree) with state-dependent coefficients, which cannot wiggle "
+                   "in it (the airspeed enters quasi-steady aerodynamics as V and V^2)")
+    p.add_argument("--param-degree", type=positive_int("--param-degree"), default=2,
+                   metavar="D", help="--param-dependence polynomial: the degree (default 2)")
+    p.add_argument("--reference-hopf", type=finite_float("--reference-hopf"), metavar="V",
+                   help="known Hopf airspeed (m/s) for the error figures")
+    p.add_argument("--reference-fold", type=finite_float("--reference-fold"), metavar="V",
+                   help="known fold airspeed (m/s) for the error figures")
+
+
+def fit_options(args):
+    """The :class:`FitOptions` the flags of :func:`add_fit_arguments` (and --system) ask
+    for; ValueError (naming the option) if they do not make one."""
+    from ..training.options import FitOptions
+    from ..training.penalties import PENALTIES
+    from ..training.options import TrainConfig
+
+    penalties = tuple(kind(getattr(args, kind.option.replace("-", "_"))) for kind in PENALTIES)
+    return FitOptions(
+        system=args.system, approximator=args.approximator, training=args.training,
+        starts=args.starts, seed=args.seed, mechanistic=args.mechanistic,
+        reference_hopf=args.reference_hopf, reference_fold=args.reference_fold,
+        train=TrainConfig(width=args.width, depth=args.depth, param_scale=args.param_scale,
+                          param_dependence=args.param_dependence,
+                          param_degree=args.param_degree,
+                          penalties=tuple(p for p in penalties if p.weight)))

@@ -1,0 +1,259 @@
+"""The fitting pipeline: mechanistic identification, several UDE starts, the adequacy check.
+
+``fit`` is a function of a dataset and options; it returns a :class:`FitResult` holding
+both models, their traced diagrams, the metrics side by side and a record of every start.
+
+Adequacy (the paper found single trainings often land in poor local minima): a start is
+*adequate* when its diagram has an orbit at every measured point with the measured
+stability (nothing missed), its branch RMS error is below the mechanistic model's, and
+it is within ``adequacy_factor`` times the error of the best start that passes the
+other checks, or under ``adequacy_floor``, or under the data's own scatter about smooth
+branches (:func:`data_scatter`), whichever is largest. The kept start is the adequate one
+with the smallest branch error; if none is adequate, the one with the fewest missed points
+and then the smallest error, and the result says so.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import jax
+import numpy as np
+
+from ._precision import require_float64
+from .analysis.adequacy import data_scatter, fold_count, judge_starts, needs_fold
+from .analysis.diagram import _evaluate, diagram_ranges
+from .data.estimates import estimate_from_data
+from .data.orbit import DataError, OrbitDataset
+from .models.mechanistic import model_class
+from .models.ude import UDE
+from .training.gp import fit_gp
+from .training.identify import TrainingData, augment, identify, residual_forces, training_data
+from .training.optimise import Diverged
+from .training.options import FitOptions
+from .training.train import refine_mechanistic, train_ude
+
+# the figures of a start's metrics its record keeps (with its fold count)
+_RECORD_METRICS = ("branch_rms", "branch_max", "missed", "trajectory_rms", "hopf", "fold")
+
+
+@dataclass
+class StartRecord:
+    """One random start of a fit: what it produced and how it was judged."""
+    start: int
+    seed: int
+    approximator: str
+    status: str = "ok"                  # "ok", or "dropped" (its training diverged)
+    reason: str | None = None           # why it was dropped
+    seconds: float = 0.0
+    train_seconds: float | None = None
+    loss: float | None = None
+    info: dict = field(default_factory=dict)
+    metrics: dict | None = None         # branch_metrics of its diagram
+    adequate: bool = False
+    model: UDE | None = None
+    diagram: dict | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def to_json(self) -> dict:
+        """The record as metrics.json keeps it: no model, the scalar training info, the
+        headline metrics and the fold count."""
+        out = {"start": self.start, "seed": self.seed, "approximator": self.approximator}
+        if not self.ok:
+            return {**out, "status": self.status, "reason": self.reason,
+                    "seconds": self.seconds, "adequate": self.adequate}
+        out.update(train_seconds=self.train_seconds, status=self.status, loss=self.loss,
+                   info={k: v for k, v in self.info.items()
+                         if isinstance(v, (int, float, str, bool))},
+                   seconds=self.seconds, adequate=self.adequate,
+                   metrics={**{k: self.metrics[k] for k in _RECORD_METRICS},
+                            "fold_count": fold_count(self.metrics)})
+        return out
+
+
+@dataclass
+class FitResult:
+    options: FitOptions
+    mechanistic: UDE
+    ude: UDE | None
+    identification: dict
+    diagrams: dict              # {"mechanistic": {...}, "ude": {...}}: key -> Branch
+    metrics: dict               # {"mechanistic", "ude", "starts", "data", ...}
+    scales: np.ndarray
+    ranges: dict
+    starts: list[StartRecord] = field(default_factory=list)
+
+
+# ---------------------------------------------------------------------------------------
+# the pipeline
+# ---------------------------------------------------------------------------------------
+
+def _relative_noise(ds: OrbitDataset) -> float | None:
+    """Median over the orbits of the raw record's residual RMS (after the harmonic fit) in
+    the first coordinate, relative to that orbit's amplitude; None without raw records."""
+    r = ds.noise()[:, 0] / ds.amplitudes()
+    r = r[np.isfinite(r)]
+    return float(np.median(r)) if r.size else None
+
+
+def _train_start(mech_model, data: TrainingData, opts: FitOptions, k: int, key, progress):
+    if opts.approximator == "nn":
+        return train_ude(mech_model, data, key=key, cfg=opts.train, training=opts.training,
+                         progress=progress)
+    Z, R = residual_forces(mech_model, data)
+    gp, info = fit_gp(Z, R, seed=opts.seed + k, restarts=opts.gp_restarts)
+    if not np.all(np.isfinite(np.asarray(gp.alpha))):
+        raise Diverged("GP fit produced non-finite weights")
+    return UDE(mech_model.mech, gp.mean_only()), {"training": "accelerations", **{
+        k_: v for k_, v in info.items() if isinstance(v, (int, float, str, bool))}}
+
+
+def prepare(ds: OrbitDataset, system: str, reference: dict | None, samples: int):
+    """Checks and the arrays every pipeline starts from: (training data, diagram ranges,
+    Hopf/fold reference, where the reference came from)."""
+    if len(ds) == 0:
+        raise DataError("the dataset is empty")
+    if ds.system != system:
+        raise DataError(f"the data is {ds.system} data, not {system}")
+    data = training_data(ds, n=samples)
+    if reference:
+        return data, diagram_ranges(ds), dict(reference), "given"
+    return (data, diagram_ranges(ds), estimate_from_data(ds),
+            "estimated from the measured points")
+
+
+def identify_mechanistic(data: TrainingData, system: str, *, bootstrap: int = 0,
+                         seed: int = 0):
+    """The least-squares mechanistic model, or the design values where that estimate is
+    unphysical (recorded in the returned info)."""
+    mech, ident = identify(data, system, bootstrap=bootstrap, seed=seed)
+    ident["method"] = "equation error (least squares)"
+    bad = mech.unphysical()
+    if bad:
+        # equation error on noisy derivatives can land on negative damping or stiffness,
+        # which no passive structure has: the design values stand in (and it is recorded)
+        ident["equation_estimate_rejected"] = bad
+        ident["equation_parameters"] = ident["parameters"]
+        mech = model_class(system).nominal()
+        ident["method"] = "design values (the least-squares estimate was unphysical)"
+        ident["parameters"] = mech.parameters()
+    return mech, ident
+
+
+def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
+        progress=None, mechanistic: UDE | None = None) -> FitResult:
+    """Identify the mechanistic model, train ``opts.starts`` UDEs, keep the best adequate one.
+
+    ``reference``: known Hopf/fold ({"hopf": V, "fold": V}, e.g. the truth) for the error
+    figures; without it they are estimated from the data and marked as such.
+    ``progress(event=..., **fields)`` is called along the way. ``mechanistic``: a model
+    to put the correction on instead of identifying one (e.g. a refined model; its
+    hidden states, if any, start from their periodic solutions along the data).
+    """
+    require_float64("fit")
+    say = progress or (lambda **kw: None)
+    t_start = time.perf_counter()
+    if reference is None:
+        reference = opts.reference() or None
+    data, ranges, ref, ref_source = prepare(ds, opts.system, reference, opts.samples)
+    if mechanistic is not None:
+        return _fit_on(mechanistic, ds, data, opts, ranges, ref, ref_source, say, t_start,
+                       verbose=progress is not None)
+    say(event="stage", stage="mechanistic identification")
+    mech, ident = identify_mechanistic(data, opts.system)
+    mech_model = UDE(mech)
+    if opts.mechanistic == "periodic":
+        say(event="stage", stage="mechanistic identification (periodic orbits)")
+        start_params = ident["parameters"]
+        mech_model, info = refine_mechanistic(
+            mech_model, data, cfg=opts.train,
+            progress=(lambda **kw: say(event="train", start=0, **kw)) if progress else None)
+        ident["method"] += ", then periodic-orbit output error"
+        ident["start_parameters"] = start_params
+        ident["parameters"] = mech_model.mech.parameters()
+        ident["periodic_loss"] = info["loss"]
+    return _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start, ident,
+                   verbose=progress is not None)
+
+
+def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
+            ident=None, verbose: bool = False) -> FitResult:
+    if ident is None:
+        ident = {"method": "given", "parameters": mech_model.mech.parameters(),
+                 "std_error": {}}
+    data = augment(data, mech_model.mech)
+    scales = np.asarray(data.y_scale)
+    say(event="stage", stage="mechanistic diagram")
+    mech_diag, mech_m = _evaluate(mech_model, ds, ranges, scales, ref, ref_source)
+    say(event="model", which="mechanistic", metrics=mech_m)
+
+    keys = jax.random.split(jax.random.PRNGKey(opts.seed), opts.starts)
+    starts = []
+    for k in range(opts.starts):
+        t0 = time.perf_counter()
+        say(event="start", start=k + 1, starts=opts.starts)
+        rec = StartRecord(k + 1, opts.seed, opts.approximator)
+        try:
+            model, info = _train_start(
+                mech_model, data, opts, k, keys[k],
+                (lambda **kw: say(event="train", start=k + 1, **kw)) if verbose else None)
+            rec.train_seconds = time.perf_counter() - t0
+            diag, m = _evaluate(model, ds, ranges, scales, ref, ref_source)
+            rec.loss, rec.info, rec.metrics = info.get("final_loss"), info, m
+            rec.model, rec.diagram = model, diag
+        except Diverged as exc:
+            rec.status, rec.reason = "dropped", str(exc)
+        rec.seconds = time.perf_counter() - t0
+        say(event="start_done", start=k + 1, record=rec)
+        starts.append(rec)
+
+    scatter = data_scatter(ds)
+    fold_needed = needs_fold(ds)
+    ok = [s for s in starts if s.ok and s.metrics["branch_rms"] is not None]
+    for s, a in zip(starts, judge_starts([s.metrics for s in starts], mech_m, opts, scatter,
+                                         fold_needed)):
+        s.adequate = a
+    best = None
+    if ok:
+        best = min(ok, key=lambda s: (not s.adequate, s.metrics["missed"],
+                                      s.metrics["branch_rms"]))
+    metrics = {
+        "system": opts.system,
+        "approximator": opts.approximator,
+        "training": opts.training if opts.approximator == "nn" else "accelerations",
+        "data": {"points": len(ds), "sources": list(ds.sources),
+                 "stable": int(sum(1 for o in ds if o.stable is True)),
+                 "unstable": int(sum(1 for o in ds if o.stable is False)),
+                 "max_amplitude": float(ds.amplitudes().max()),
+                 "noise_rms": _relative_noise(ds), "scatter": scatter},
+        "mechanistic": {**mech_m, "parameters": ident["parameters"],
+                        "identification": {k: v for k, v in ident.items()
+                                           if k not in ("parameters", "std_error")},
+                        "std_error": ident["std_error"]},
+        "ude": None if best is None else {**best.metrics, "start": best.start,
+                                          "adequate": best.adequate},
+        "starts": {"requested": opts.starts,
+                   "completed": len(ok),
+                   "dropped": [{"start": s.start, "reason": s.reason}
+                               for s in starts if not s.ok],
+                   "adequate": int(sum(s.adequate for s in starts)),
+                   "kept": None if best is None else best.start,
+                   "criterion": {"missed": 0, "below_mechanistic": True,
+                                 "factor_of_best": opts.adequacy_factor,
+                                 "floor": opts.adequacy_floor,
+                                 "data_scatter": scatter,
+                                 "max_extra_folds_per_family": 1,
+                                 "fold_required": fold_needed},
+                   "records": [s.to_json() for s in starts]},
+        "ranges": ranges,
+        "seconds": time.perf_counter() - t_start,
+    }
+    return FitResult(options=opts, mechanistic=mech_model,
+                     ude=None if best is None else best.model, identification=ident,
+                     diagrams={"mechanistic": mech_diag,
+                               "ude": None if best is None else best.diagram},
+                     metrics=metrics, scales=scales, ranges=ranges, starts=starts)

@@ -1,0 +1,113 @@
+"""The Markdown report of a fit: what was fitted to what, and the two models side by side."""
+
+from __future__ import annotations
+
+from .format import location, pct
+
+
+
+def _ref(m: dict, key: str) -> str:
+    e = (m or {}).get(key) or {}
+    if e.get("reference") is None:
+        return "no reference"
+    return f"{e['reference']:.3f} ({e['reference_source']})"
+
+
+def render(metrics: dict, figures: dict) -> str:
+    """Markdown text from ``metrics`` (as written to metrics.json) and figure file names."""
+    mech, ude = metrics["mechanistic"], metrics.get("ude")
+    sysname = "aerofoil (flutter)" if metrics["system"] == "flutter" else "forced oscillator"
+    unit = "m/s" if metrics["system"] == "flutter" else "forcing units"
+    d = metrics["data"]
+    L = [f"# ude-fit report: {sysname}", "",
+         f"Written by ude_fit {metrics['version']} on {metrics['written']}; "
+         f"command `{metrics['command']}`.", "",
+         "## Data", "",
+         f"{d['points']} periodic orbits ({d['stable']} stable, {d['unstable']} unstable, "
+         f"{d['points'] - d['stable'] - d['unstable']} of unknown stability) from "
+         + ", ".join(f"`{s}`" for s in d["sources"]) + ".",
+         f"Largest measured amplitude {1e3 * d['max_amplitude']:.3f} mm; amplitude errors are "
+         "relative to it.", "",
+         "## Models side by side", "",
+         f"UDE: {metrics['approximator'].upper()} correction, training `{metrics['training']}`, "
+         f"start {ude['start'] if ude else '—'} of {metrics['starts']['requested']} kept.", "",
+         "| | mechanistic | UDE |", "|---|---|---|"]
+    g = lambda k: (mech.get(k), (ude or {}).get(k))
+    rows = [("branch amplitude error, RMS", pct), ("branch amplitude error, max", pct),
+            ("missed points", lambda x: "—" if x is None else str(x)),
+            ("one-period trajectory error, RMS", pct)]
+    keys = ["branch_rms", "branch_max", "missed", "trajectory_rms"]
+    for (label, f), k in zip(rows, keys):
+        a, b = g(k)
+        L.append(f"| {label} | {f(a)} | {f(b)} |")
+    if metrics["system"] == "flutter":
+        L.append(f"| Hopf airspeed ({unit}) | {location(mech.get('hopf'))} | "
+                 f"{location((ude or {}).get('hopf'))} |")
+        L.append(f"| fold airspeed ({unit}) | {location(mech.get('fold'))} | "
+                 f"{location((ude or {}).get('fold'))} |")
+        L += ["", f"References: Hopf {_ref(mech, 'hopf')}, fold {_ref(mech, 'fold')}."]
+        for name, mm in (("mechanistic", mech), ("UDE", ude or {})):
+            if mm.get("isolas"):
+                L.append(f"The {name} model also has {mm['isolas']} branch(es) not connected "
+                         "to its Hopf point (traced from the measured orbits it passes near)"
+                         + (f", with folds at {', '.join(f'{x:.3f}' for x in mm['isola_folds'])}"
+                            if mm.get("isola_folds") else "") + ".")
+    else:
+        L += ["", "### Per forcing frequency", "",
+              "| frequency (Hz) | mechanistic RMS | UDE RMS | mechanistic max | UDE max | "
+              "missed (mech / UDE) | folds, mechanistic | folds, UDE |",
+              "|---|---|---|---|---|---|---|---|"]
+        for f, mm in mech.get("per_frequency", {}).items():
+            uu = (ude or {}).get("per_frequency", {}).get(f, {})
+            fm = ", ".join(f"{x:.4g}" for x in mech.get("folds", {}).get(f, [])) or "none"
+            fu = ", ".join(f"{x:.4g}" for x in (ude or {}).get("folds", {}).get(f, [])) or "none"
+            L.append(f"| {f} | {pct(mm['branch_rms'])} | {pct(uu.get('branch_rms'))} | "
+                     f"{pct(mm['branch_max'])} | {pct(uu.get('branch_max'))} | "
+                     f"{mm['missed']} / {uu.get('missed', '—')} | {fm} | {fu} |")
+    st = metrics["starts"]
+    L += ["", "## Starts and the adequacy check", "",
+          f"{st['adequate']} of {st['requested']} starts adequate ({st['completed']} completed, "
+          f"{len(st['dropped'])} dropped). A start is adequate when it misses no measured point "
+          "(an orbit with the measured stability at every measured parameter), its branch RMS "
+          f"error is below the mechanistic model's, and within "
+          f"{st['criterion']['factor_of_best']} times that of the best start passing the "
+          f"other checks (or under {pct(st['criterion']['floor'])}, or under the data's own "
+          f"scatter about smooth branches, {pct(st['criterion']['data_scatter'])}).",
+          "",
+          "A start must also be qualitatively the mechanistic model's diagram: at most one "
+          "fold more per branch family (one family for the aerofoil, one per frequency for "
+          "the oscillator)"
+          + ("; and, as the data has stable and unstable orbits, at least one fold (the "
+             "branch from the Hopf point turns there to become the stable one)."
+             if st["criterion"].get("fold_required") else "."), "",
+          "| start | status | seconds | branch RMS | max | missed | folds | Hopf | fold | "
+          "adequate |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in st["records"]:
+        m = r.get("metrics") or {}
+        L.append(f"| {r['start']} | {r['status']} | {r['seconds']:.1f} | "
+                 f"{pct(m.get('branch_rms'))} | {pct(m.get('branch_max'))} | "
+                 f"{m.get('missed', '—')} | {m.get('fold_count', '—')} | "
+                 f"{location(m.get('hopf'))} | {location(m.get('fold'))} | "
+                 f"{'yes' if r.get('adequate') else 'no'} |")
+    for d_ in st["dropped"]:
+        L.append(f"\nStart {d_['start']} dropped: {d_['reason']}.")
+    L += ["", "## Mechanistic parameters (least squares on the averaged orbits)", "",
+          "| parameter | value | standard error |", "|---|---|---|"]
+    for k, v in mech["parameters"].items():
+        L.append(f"| {k} | {v:.6g} | {mech['std_error'].get(k, float('nan')):.2g} |")
+    L += ["", "## Figures", ""]
+    for label, name in figures.items():
+        L.append(f"![{label}]({name})")
+        L.append("")
+    L += ["## Points", "",
+          f"| parameter ({unit}) | frequency (Hz) | stable | measured (mm) | mechanistic (mm) | "
+          "UDE (mm) |", "|---|---|---|---|---|---|"]
+    up = {(p["parameter"], p["frequency"], p["measured"]): p for p in (ude or {}).get("points", [])}
+    for p in mech["points"]:
+        q = up.get((p["parameter"], p["frequency"], p["measured"]), {})
+        mm = lambda x: "missed" if x is None else f"{1e3 * x:.3f}"
+        st_ = {True: "yes", False: "no", None: "?"}[p["stable"]]
+        L.append(f"| {p['parameter']:.4g} | {p['frequency']:.4g} | {st_} | "
+                 f"{1e3 * p['measured']:.3f} | {mm(p['model'])} | {mm(q.get('model'))} |")
+    return "\n".join(L) + "\n"

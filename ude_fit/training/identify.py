@@ -1,0 +1,226 @@
+"""From a dataset of orbits to training arrays, and the mechanistic model's parameters.
+
+Identification is by *equation error*: on the Fourier-averaged orbits the states,
+rates and accelerations are known analytically, and both mechanistic models are
+linear in their fitted parameters, so one weighted least-squares solve gives
+them, with no simulation and no starting guess.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._fourier import K, amplitude, evaluate
+from ..models.library import band_limited, columns, effect, states_of
+from ..models.mechanistic import (FLUTTER_NOMINAL, Drive, Duffing7, FlutterQS, duffing7,
+                                  flutter_qs)
+from ..models.refined import refined
+from ..models.ude import UDE
+
+
+def derivative_coeffs(c: np.ndarray, omega: float) -> np.ndarray:
+    """Coefficients (15, ...) of d/dt of the series with phase omega t."""
+    k = np.arange(1, K + 1).reshape((K,) + (1,) * (c.ndim - 1))
+    d = np.zeros_like(c)
+    d[1:K + 1] = omega * k * c[K + 1:]
+    d[K + 1:] = -omega * k * c[1:K + 1]
+    return d
+
+
+class TrainingData(eqx.Module):
+    """Every orbit sampled at ``n`` phases: states, accelerations and what drives it."""
+    ys: jax.Array        # (n_orbits, n, n_state)
+    qdd: jax.Array       # (n_orbits, n, n_dof)
+    period: jax.Array    # (n_orbits,) s
+    drive: Drive         # batched: param (n_orbits,), omega, fc (n_orbits, 15)
+    label: jax.Array     # (n_orbits,) +1 stable, -1 unstable, 0 unknown
+    y_scale: jax.Array   # (n_state,) RMS of each state over the data
+    amp_max: float = eqx.field(static=True)
+
+    @property
+    def n_orbits(self) -> int:
+        return int(self.ys.shape[0])
+
+
+def training_data(ds, n: int = 32) -> TrainingData:
+    phi = 2 * np.pi * np.arange(n) / n
+    ys, qdds, T, P, W, FC, L = [], [], [], [], [], [], []
+    for o in ds.orbits:
+        c = np.asarray(o.coeffs, float).T            # (15, n_coord)
+        w = 2 * np.pi * o.frequency
+        cd = derivative_coeffs(c, w)
+        cdd = derivative_coeffs(cd, w)
+        q, qd, qdd = (evaluate(x.T, phi).T for x in (c, cd, cdd))
+        ys.append(np.concatenate([q, qd], axis=1))
+        qdds.append(qdd)
+        T.append(1.0 / o.frequency)
+        P.append(o.parameter)
+        W.append(w)
+        FC.append(np.zeros(2 * K + 1) if o.forcing is None else np.asarray(o.forcing))
+        L.append(0 if o.stable is None else (1 if o.stable else -1))
+    ys = np.asarray(ys)
+    amp = amplitude(np.asarray([o.coeffs[0] for o in ds.orbits]))
+    y_scale = np.sqrt(np.mean(ys ** 2, axis=(0, 1)))
+    return TrainingData(jnp.asarray(ys), jnp.asarray(np.asarray(qdds)), jnp.asarray(T),
+                        Drive(jnp.asarray(P, float), jnp.asarray(W, float), jnp.asarray(FC)),
+                        jnp.asarray(L, float), jnp.asarray(y_scale), float(amp.max()))
+
+
+def _flat(data: TrainingData):
+    n_o, n, ns = data.ys.shape
+    nd = data.qdd.shape[-1]
+    y = np.asarray(data.ys).reshape(-1, ns)
+    qdd = np.asarray(data.qdd).reshape(-1, nd)
+    rep = lambda a: np.repeat(np.asarray(a), n, axis=0)
+    t = np.tile(np.asarray(data.period)[:, None] * np.arange(n) / n, 1).reshape(-1)
+    return y, qdd, rep(data.drive.param), rep(data.drive.omega), rep(data.drive.fc), t
+
+
+def _excitation(fc, omega, t):
+    k = np.arange(1, K + 1)
+    ph = (omega * t)[:, None] * k
+    return fc[:, 0] + (fc[:, 1:K + 1] * np.cos(ph)).sum(1) + (fc[:, K + 1:] * np.sin(ph)).sum(1)
+
+
+def identify(data: TrainingData, system: str, base: dict | None = None,
+             effects: tuple = (), *, bootstrap: int = 0, seed: int = 0):
+    """Least-squares damping and stiffness (aerofoil) or all coefficients (oscillator),
+    and the coefficients of any ``effects`` ((key, shape) pairs from the library), which
+    make the result a :class:`~ude_fit._refined.Refined` model.
+
+    Returns (mechanistic model, info) with the parameter standard errors (least squares,
+    samples taken as independent) and, with ``bootstrap`` > 0, the standard deviations
+    over that many refits to orbits resampled with replacement (the honest figure: the
+    samples of one orbit are not independent).
+    """
+    A, b, names, _ = regression(data, system, base, effects)
+    # each equation weighted by its own force scale, each column by its own size
+    w_eq = 1.0 / np.sqrt(np.mean(b ** 2, axis=0) + 1e-300)
+    Aw = (A * w_eq[None, :, None]).reshape(-1, A.shape[-1])
+    bw = (b * w_eq[None, :]).reshape(-1)
+    col = np.sqrt(np.mean(Aw ** 2, axis=0))
+    col = np.where(col > 0, col, 1.0)
+    theta_s, *_ = np.linalg.lstsq(Aw / col, bw, rcond=None)
+    theta = theta_s / col
+    boot = None
+    if bootstrap:
+        n_o, n_eq = data.ys.shape[0], A.shape[1]
+        rows = np.arange(A.shape[0] * n_eq).reshape(n_o, -1)     # orbit-major samples
+        rng = np.random.default_rng(seed)
+        draws = []
+        for _ in range(bootstrap):
+            idx = rows[rng.integers(0, n_o, n_o)].ravel()
+            draws.append(np.linalg.lstsq((Aw / col)[idx], bw[idx], rcond=None)[0] / col)
+        boot = np.asarray(draws).std(axis=0)
+    res = bw - Aw @ theta
+    dof = max(1, Aw.shape[0] - Aw.shape[1])
+    s2 = float(res @ res) / dof
+    cov = s2 * np.linalg.pinv((Aw / col).T @ (Aw / col)) / np.outer(col, col)
+    values = dict(zip(names, theta.tolist()))
+    mech = build(system, base, values, effects)
+    info = {"parameters": values,
+            "std_error": dict(zip(names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist())),
+            "equation_rms": float(np.sqrt(np.mean(res ** 2)))}
+    if boot is not None:
+        info["bootstrap_std"] = dict(zip(names, boot.tolist()))
+    return mech, info
+
+
+def build(system: str, base: dict | None, values: dict, effects: tuple = ()):
+    """The (refined) mechanistic model from identified ``values`` (names as identify's)."""
+    if system == "flutter":
+        base = dict(FLUTTER_NOMINAL if base is None else base)
+        mech = flutter_qs(**{**base, **{k: v for k, v in values.items()
+                                        if k in FlutterQS.fitted}})
+    else:
+        mech = duffing7(**{k: v for k, v in values.items() if k in Duffing7.fitted})
+    if not effects:
+        return mech
+    added = []
+    for key, shape in effects:
+        e = effect(system, key)
+        added.append({"key": key, "shape": shape,
+                      "coefficients": [values[f"{key}[{t}]"] for t in e.terms]})
+    return refined(mech, added)
+
+
+def regression(data: TrainingData, system: str, base: dict | None = None,
+               effects: tuple = ()):
+    """Equation-error regression ``A theta = b`` on every sample: A (N, n_eq, p), b (N, n_eq),
+    the parameter names, and the unfitted mechanistic model. Effect columns enter with a
+    minus sign: the model is ``known + A theta = 0`` with the effect on the right-hand side."""
+    y, qdd, P, W, FC, t = _flat(data)
+    if system == "flutter":
+        base = dict(FLUTTER_NOMINAL if base is None else base)
+        mech = flutter_qs(**base)
+        nd = 2
+        # the mass and aerodynamic matrices depend on V only: one evaluation per airspeed
+        # (the samples stay in data order)
+        A = np.empty((len(P), 2, len(FlutterQS.fitted)))
+        b = np.empty((len(P), 2))
+        for V in np.unique(P):
+            m = P == V
+            Am, known = mech.regressors(jnp.asarray(y[m, :nd]), jnp.asarray(y[m, nd:2 * nd]),
+                                        jnp.asarray(qdd[m]), V)
+            A[m] = np.asarray(Am)
+            b[m] = -np.asarray(known)
+        names = list(FlutterQS.fitted)
+    else:
+        mech = duffing7()
+        exc = _excitation(FC, W, t)
+        A, known = mech.regressors(jnp.asarray(y[:, :1]), jnp.asarray(y[:, 1:2]),
+                                   jnp.asarray(qdd), jnp.asarray(exc))
+        A, b = np.asarray(A), -np.asarray(known)
+        names = list(Duffing7.fitted)
+    # the model's own nonlinear columns (alpha^2, x^3, ...) compared in the band the
+    # measured orbits carry, as the effect columns are (_library.band_limited)
+    A = band_limited(A.reshape(A.shape[0], -1), data.ys.shape[1]).reshape(A.shape)
+    if effects:
+        S = states_of(data, system)
+        extra = []
+        for key, shape in effects:
+            e = effect(system, key)
+            X = columns(e, S, shape)
+            block = np.zeros((X.shape[0], A.shape[1], X.shape[1]))
+            block[:, e.equation, :] = -X
+            extra.append(block)
+            names += [f"{key}[{t}]" for t in e.terms]
+        A = np.concatenate([A] + extra, axis=2)
+    return A, b, names, mech
+
+
+def augment(data: TrainingData, mech) -> TrainingData:
+    """``data`` with the hidden states of a refined model appended to every sample: each
+    lag's steady periodic solution along the measured orbit (exact by Fourier series), so
+    a model with hidden states can start, and be compared, on the data's orbits."""
+    if not getattr(mech, "n_hidden", 0):
+        return data
+    ys = np.asarray(data.ys)
+    Z = mech.hidden_states(states_of(data, mech.system)).reshape(ys.shape[0], ys.shape[1], -1)
+    ys2 = np.concatenate([ys, Z], axis=2)
+    y_scale = np.sqrt(np.mean(ys2 ** 2, axis=(0, 1)))
+    y_scale = np.where(y_scale > 0, y_scale, 1.0)
+    return TrainingData(jnp.asarray(ys2), data.qdd, data.period, data.drive, data.label,
+                        jnp.asarray(y_scale), data.amp_max)
+
+
+def residual_forces(model: UDE, data: TrainingData):
+    """What the correction must supply on every sample: features Z and forces R."""
+    n_o, n, ns = data.ys.shape
+    t = data.period[:, None] * jnp.arange(n)[None, :] / n
+
+    data = augment(data, model.mech)
+    nd = model.mech.n_dof
+
+    def one(y, qdd, tt, drive):
+        q, qd = y[:nd], y[nd:2 * nd]
+        F = model.mech.force(q, qd, drive, y[2 * nd:]) if model.n_hidden else \
+            model.mech.force(q, qd, drive)
+        return model.features(y, drive), model.mech.residual_force(qdd, F, tt, drive)
+
+    f = jax.vmap(jax.vmap(one, in_axes=(0, 0, 0, None)), in_axes=(0, 0, 0, 0))
+    Z, R = f(data.ys, data.qdd, t, data.drive)
+    return np.asarray(Z).reshape(-1, Z.shape[-1]), np.asarray(R).reshape(-1, R.shape[-1])

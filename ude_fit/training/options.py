@@ -1,0 +1,191 @@
+"""What a fit takes, as typed objects that check themselves when built: :class:`TrainConfig`
+(how one correction is trained: network, optimiser, shooting weights, penalties) inside
+:class:`FitOptions` (the whole fit: system, approximator, starts, adequacy, references).
+A ValueError from either names the option (in the command line's spelling) and what is
+wrong with it; the command line prints it as its one-line usage error.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..models.mechanistic import SYSTEMS
+from .penalties import Penalty
+
+APPROXIMATORS = ("nn", "gp")
+TRAININGS = ("trajectory", "periodic")
+MECHANISTIC = ("equation", "periodic")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """How one correction is trained: the network, the optimiser's steps, the shooting
+    losses' weights and the penalties (:mod:`.penalties`). A field left at None takes its
+    system's default (:data:`SYSTEM_DEFAULTS`, applied by :meth:`for_system`). Checks its
+    own fields when built (ValueError naming the field)."""
+    width: int = 12
+    depth: int = 2
+    equation_steps: int | None = None         # Adam steps on the equation loss
+    equation_lbfgs_steps: int | None = None   # L-BFGS steps on the equation loss
+    adam_steps: int | None = None             # Adam steps on the trajectory/periodic loss
+    lbfgs_steps: int | None = None            # L-BFGS steps on the trajectory/periodic loss
+    learning_rate: float = 3e-3
+    substeps: int | None = None  # RK4 steps between two samples of the orbit
+    closure_weight: float = 10.0
+    stability_weight: float = 10.0
+    stability_margin: float = 0.02
+    init_scale: float = 1e-2
+    param_scale: float = 1.0     # the parameter input is standardised by this times its spread
+    # how the NN correction depends on the parameter: "input" (a network input like the
+    # states) or "polynomial" (a polynomial of param_degree in it, state-dependent
+    # coefficients; PolynomialParamCorrection)
+    param_dependence: str = "input"
+    param_degree: int = 2
+    penalties: tuple[Penalty, ...] = ()
+
+    def __post_init__(self):
+        for name in ("width", "depth", "param_degree"):
+            _check_int(name, getattr(self, name), 1)
+        for name in ("equation_steps", "equation_lbfgs_steps", "adam_steps", "lbfgs_steps"):
+            if getattr(self, name) is not None:
+                _check_int(name, getattr(self, name), 0)
+        if self.substeps is not None:
+            _check_int("substeps", self.substeps, 1)
+        for name in ("learning_rate", "init_scale", "param_scale"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number, not {v!r}")
+        for name in ("closure_weight", "stability_weight", "stability_margin"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a number at least 0, not {v!r}")
+        if self.param_dependence not in PARAM_DEPENDENCE:
+            raise ValueError(f"param_dependence must be input or polynomial, not "
+                             f"{self.param_dependence!r}")
+        object.__setattr__(self, "penalties", tuple(self.penalties))
+        kinds = [type(p) for p in self.penalties]
+        for p in self.penalties:
+            if not isinstance(p, Penalty):
+                raise ValueError(f"penalties must be Penalty objects, not {p!r}")
+        if len(set(kinds)) != len(kinds):
+            raise ValueError("penalties: each kind at most once")
+
+    def for_system(self, system: str) -> "TrainConfig":
+        """This configuration with every None field set to ``system``'s default."""
+        if system not in SYSTEM_DEFAULTS:
+            raise ValueError(f"unknown system {system!r} (flutter or oscillator)")
+        cfg = dataclasses.replace(self, **{k: v for k, v in SYSTEM_DEFAULTS[system].items()
+                                           if getattr(self, k) is None})
+        if cfg.equation_lbfgs_steps is None:
+            cfg = dataclasses.replace(cfg, equation_lbfgs_steps=cfg.lbfgs_steps)
+        return cfg
+
+    def penalty(self, kind: type) -> Penalty | None:
+        """The penalty of class ``kind``, if any."""
+        return next((p for p in self.penalties if isinstance(p, kind)), None)
+
+    def needs_points(self) -> bool:
+        """Whether any active penalty reads the regularity points."""
+        return any(p.needs_points and p.weight for p in self.penalties)
+
+    def to_json(self) -> dict:
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+             if f.name != "penalties"}
+        d["penalties"] = {k: v for p in self.penalties for k, v in p.to_json().items()}
+        return d
+
+
+def _check_int(name: str, v, least: int) -> None:
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
+        raise ValueError(f"{name} must be an integer at least {least}, not {v!r}")
+
+
+PARAM_DEPENDENCE = ("input", "polynomial")
+
+# Per-system defaults. The forced oscillator's orbits are smooth enough at 64 RK4 steps per
+# period (2 per sample; amplitude within 1e-5 of the converged orbit up to 10 mm), which
+# makes its shooting losses 3x cheaper; its correction is cheap to fit to the equation
+# residual, and that first stage decides most of the final quality, so it gets more steps.
+SYSTEM_DEFAULTS = {
+    "flutter": dict(equation_steps=1500, adam_steps=300, lbfgs_steps=100, substeps=4),
+    "oscillator": dict(equation_steps=4000, equation_lbfgs_steps=1000, adam_steps=300,
+                       lbfgs_steps=100, substeps=2),
+}
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Everything a fit takes, checked when built: a ValueError names the option (in the
+    command line's spelling) and what is wrong with it."""
+    system: str
+    approximator: str = "nn"
+    training: str = "periodic"
+    starts: int = 5
+    seed: int = 0
+    samples: int = 32                 # samples per period of each averaged orbit
+    train: TrainConfig = TrainConfig()
+    adequacy_factor: float = 2.0
+    adequacy_floor: float = 0.01
+    gp_restarts: int = 2
+    mechanistic: str = "equation"     # "equation": least squares; "periodic": then refined
+    reference_hopf: float | None = None   # known Hopf airspeed (m/s), for the error figures
+    reference_fold: float | None = None   # known fold airspeed (m/s)
+
+    def __post_init__(self):
+        if self.system not in SYSTEMS:
+            raise ValueError(f"--system must be {' or '.join(SYSTEMS)}, not {self.system!r}")
+        if self.approximator not in APPROXIMATORS:
+            raise ValueError(f"--approximator must be nn or gp, not {self.approximator!r}")
+        if self.training not in TRAININGS:
+            raise ValueError(f"--training must be trajectory or periodic, not "
+                             f"{self.training!r}")
+        if self.mechanistic not in MECHANISTIC:
+            raise ValueError(f"--mechanistic must be equation or periodic, not "
+                             f"{self.mechanistic!r}")
+        for name, least in (("starts", 1), ("samples", 8), ("gp_restarts", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < least:
+                raise ValueError(f"--{name.replace('_', '-')} must be an integer at least "
+                                 f"{least}, not {v!r}")
+        for name in ("adequacy_factor", "adequacy_floor"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a number at least 0, not {v!r}")
+        if not isinstance(self.train, TrainConfig):
+            raise ValueError(f"train must be a TrainConfig, not {self.train!r}")
+        for name in ("reference_hopf", "reference_fold"):
+            v = getattr(self, name)
+            if v is not None and not math.isfinite(v):
+                raise ValueError(f"--{name.replace('_', '-')} must be finite, not {v!r}")
+        if self.system != "flutter" and self.reference():
+            raise ValueError("--reference-hopf/--reference-fold apply to --system flutter "
+                             "only")
+        active = [p for p in self.train.penalties if p.weight]
+        aero = [p for p in active if p.aerofoil_only]
+        if self.system != "flutter" and aero:
+            raise ValueError("/".join(f"--{p.option}" for p in aero)
+                             + " apply to --system flutter only")
+        if self.approximator != "nn":
+            nn_only = [f"--{p.option}" for p in active]
+            if self.train.param_scale != 1.0:
+                nn_only.append("--param-scale")
+            if self.train.param_dependence != "input":
+                nn_only.append("--param-dependence polynomial")
+            if nn_only:
+                raise ValueError("/".join(nn_only) + " apply to --approximator nn only")
+
+    def reference(self) -> dict:
+        """The known Hopf and fold airspeeds given, as {"hopf": V, "fold": V}."""
+        return {k: v for k, v in (("hopf", self.reference_hopf),
+                                  ("fold", self.reference_fold)) if v is not None}
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["train"] = self.train.for_system(self.system).to_json()   # the values actually used
+        return d
+
+

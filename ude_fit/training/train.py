@@ -1,0 +1,210 @@
+"""Training the correction of a UDE: pure loss functions and the optimiser loop.
+
+Three losses, used in this order by :func:`train_ude`:
+
+* ``equation``: the correction against the residual force the mechanistic model
+  leaves on every sample of the averaged orbits (no simulation; a fast start).
+* ``trajectory`` (the paper's): integrate the UDE over one period from each
+  measured initial state (diffrax, classical RK4 steps, checkpointed reverse mode)
+  and compare the states at the measured phases.
+* ``periodic`` (beyond the paper): every orbit gets its own initial state and,
+  for the autonomous aerofoil, its own period as unknowns; the loss asks for a
+  *closed* model orbit that matches the measured one, with the stability the
+  data says it has. Stability enters through the sign of the characteristic
+  polynomial of the monodromy matrix at 1 (for the aerofoil with its trivial
+  multiplier factored out), which changes sign exactly when a real multiplier
+  crosses 1, as it does at a fold: smooth and with no eigen-decomposition.
+
+Optimisation: Adam, then L-BFGS (optax), all float64. Losses are module-level
+functions of (trainable, static, data), compiled once per problem structure and
+shared by every random start.
+"""
+from __future__ import annotations
+
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._precision import require_float64
+from ..models.corrections import MLPCorrection, PolynomialParamCorrection, feature_scaling
+from ..models.flow import diffrax_samples, rk4_orbit
+from ..models.ude import UDE
+from .identify import TrainingData, residual_forces
+from .optimise import minimize
+from .options import TrainConfig
+from .penalties import penalty_sum, regularity_points
+
+
+def _trainable_spec(correction):
+    spec = jax.tree_util.tree_map(lambda _: False, correction)
+    return eqx.tree_at(lambda c: c.mlp, spec,
+                       replace=jax.tree_util.tree_map(eqx.is_inexact_array, correction.mlp))
+
+
+def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig):
+    Z, R = residual_forces(model, data)
+    sc = feature_scaling(Z, R)
+    if cfg.param_scale != 1.0:
+        sc = eqx.tree_at(lambda s: s.z_scale, sc, sc.z_scale.at[-1].multiply(cfg.param_scale))
+    if cfg.param_dependence == "polynomial":
+        return PolynomialParamCorrection(Z.shape[1], R.shape[1], sc, degree=cfg.param_degree,
+                                         width=cfg.width, depth=cfg.depth, key=key,
+                                         init_scale=cfg.init_scale)
+    return MLPCorrection(Z.shape[1], R.shape[1], sc, width=cfg.width,
+                         depth=cfg.depth, key=key, init_scale=cfg.init_scale)
+
+
+# ---------------------------------------------------------------------------------------
+# losses
+# ---------------------------------------------------------------------------------------
+
+def equation_loss(params, static, mech, Z, R, penalties=(), reg=None):
+    """The correction against the residual forces R at the features Z, plus the penalties
+    that act in the equation stage."""
+    corr = eqx.combine(params["corr"], static)
+    pred = jax.vmap(corr)(Z)
+    loss = jnp.mean(((pred - R) / corr.scaling.out_scale) ** 2)
+    return loss + penalty_sum(penalties, "equation", UDE(mech, corr), reg)
+
+
+def _simulate_with_monodromy(model, y0, T, drive, n, sub):
+    """One pass of forward-mode autodiff: end state, samples and the monodromy matrix
+    (the tangent integration rides along with the primal one, so the orbit is
+    integrated once)."""
+    def flow(y):
+        yT, ys = rk4_orbit(model, y, T, drive, n * sub)
+        return yT, (yT, ys)
+    M, (yT, ys) = jax.jacfwd(flow, has_aux=True)(y0)
+    return yT, ys[::sub], M
+
+
+def trajectory_loss(params, static, mech, data: TrainingData, sub: int, penalties=(),
+                    reg=None):
+    """One-period trajectories from the measured states against the measured orbits (the
+    paper's loss), plus the penalties that act in the trajectory stage."""
+    model = UDE(mech, eqx.combine(params["corr"], static))
+    return (_trajectory_error(model, data, sub)
+            + penalty_sum(penalties, "trajectory", model, reg))
+
+
+def _trajectory_error(model, data: TrainingData, sub: int):
+    n = data.ys.shape[1]
+
+    def one(ys, T, drive):
+        sim = diffrax_samples(model, ys[0], T, drive, n, sub)
+        return jnp.mean(((sim - ys) / data.y_scale) ** 2)
+
+    return jnp.mean(jax.vmap(one)(data.ys, data.period, data.drive))
+
+
+def _periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
+    """Closed model orbits through the measured ones, with the measured stability."""
+    w_close, w_stab, margin = cfg.closure_weight, cfg.stability_weight, cfg.stability_margin
+    sub = cfg.substeps
+    n = data.ys.shape[1]
+    autonomous = model.mech.autonomous
+
+    def one(ys, y0, T, drive, label):
+        yT, sim, M = _simulate_with_monodromy(model, y0, T, drive, n, sub)
+        s = model.mech.stability_indicator(M)
+        fit = jnp.mean(((sim - ys) / data.y_scale) ** 2)
+        close = jnp.sum(((yT - y0) / data.y_scale) ** 2)
+        stab = jnp.where(label == 0, 0.0, jax.nn.relu(margin - label * s) ** 2)
+        return fit + w_close * close + w_stab * stab
+
+    y0 = data.ys[:, 0, :] + params["dy0"] * data.y_scale
+    T = data.period * (1.0 + params["dT"]) if autonomous else data.period
+    return jnp.mean(jax.vmap(one)(data.ys, y0, T, data.drive, data.label))
+
+
+def periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg=None):
+    """Closed model orbits through the measured ones with the measured stability, plus the
+    penalties that act in the periodic stage."""
+    model = UDE(mech, eqx.combine(params["corr"], static))
+    return (_periodic_objective(model, params, data, cfg)
+            + penalty_sum(cfg.penalties, "periodic", model, reg))
+
+
+def _mech_leaves(mech):
+    """The fitted parameters of a mechanistic model as a tuple of arrays: the base
+    model's fitted fields, then each added effect's coefficient vector."""
+    base = mech.base
+    return (tuple(getattr(base, f) for f in base.fitted)
+            + tuple(a.coefficients for a in mech.effects))
+
+
+def _mech_with(mech, sizes, base, scale, delta):
+    flat = base + scale * delta
+    vals, i = [], 0
+    for shp in sizes:
+        k = int(np.prod(shp)) if shp else 1
+        vals.append(flat[i:i + k].reshape(shp))
+        i += k
+    return eqx.tree_at(_mech_leaves, mech, tuple(vals))
+
+
+def _mech_periodic_loss(params, mech, sizes, base, scale, data, cfg):
+    model = UDE(_mech_with(mech, sizes, base, scale, params["delta"]))
+    return _periodic_objective(model, params, data, cfg)
+
+
+def refine_mechanistic(model: UDE, data: TrainingData, *, cfg: TrainConfig, progress=None):
+    """Output-error identification of the mechanistic parameters: the equation-error
+    estimate (or any start) refined so that the model has closed orbits through the
+    measured ones with the measured stability. Returns (UDE without correction, info).
+    ``data`` must carry the model's hidden states, if it has any (``augment``)."""
+    cfg = cfg.for_system(model.system)
+    mech = model.mech
+    leaves = _mech_leaves(mech)
+    sizes = tuple(tuple(jnp.shape(x)) for x in leaves)
+    base = jnp.concatenate([jnp.ravel(jnp.asarray(x, float)) for x in leaves])
+    scale = jnp.where(jnp.abs(base) > 0, jnp.abs(base), 1.0)
+    params = {"delta": jnp.zeros(base.size), "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
+    if model.mech.autonomous:                  # the period is an unknown too
+        params["dT"] = jnp.zeros(data.period.shape)
+    params, v = minimize(_mech_periodic_loss, params,
+                         (mech, sizes, base, scale, data, cfg),
+                         adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
+                         lr=cfg.learning_rate, progress=progress, stage="mechanistic")
+    refined = _mech_with(mech, sizes, base, scale, params["delta"])
+    return UDE(refined), {"loss": v}
+
+
+def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training: str,
+              progress=None) -> tuple[UDE, dict]:
+    """Fit a fresh MLP correction on top of ``model.mech``; returns (UDE, info)."""
+    require_float64("train_ude")
+    cfg = cfg.for_system(model.system)
+    corr = new_correction(model, data, key, cfg)
+    trainable, static = eqx.partition(corr, _trainable_spec(corr))
+    mech = model.mech
+    info = {"training": training}
+    Z, R = residual_forces(UDE(mech), data)
+    params = {"corr": trainable}
+    reg = regularity_points(data) if cfg.needs_points() else None
+    params, v = minimize(equation_loss, params,
+                         (static, mech, jnp.asarray(Z), jnp.asarray(R), cfg.penalties, reg),
+                         adam_steps=cfg.equation_steps, lbfgs_steps=cfg.equation_lbfgs_steps,
+                         lr=1e-2, progress=progress, stage="equation")
+    info["equation_loss"] = v
+    if training == "trajectory":
+        params, v = minimize(trajectory_loss, params,
+                             (static, mech, data, cfg.substeps, cfg.penalties, reg),
+                             adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
+                             lr=cfg.learning_rate, progress=progress, stage="trajectory")
+    elif training == "periodic":
+        # initial states and periods as scaled offsets from the measured ones, so one
+        # Adam step size suits metres, radians and seconds alike
+        params = {"corr": params["corr"], "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
+        if model.mech.autonomous:
+            params["dT"] = jnp.zeros(data.period.shape)
+        params, v = minimize(periodic_loss, params, (static, mech, data, cfg, reg),
+                             adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
+                             lr=cfg.learning_rate, progress=progress, stage="periodic")
+    elif training != "equation":
+        raise ValueError(f"unknown training mode {training!r} (trajectory, periodic, equation)")
+    info["final_loss"] = v
+    return UDE(mech, eqx.combine(params["corr"], static)), info
+
