@@ -284,7 +284,7 @@ def test_lee2020_model2_loads_as_eleven_orbits(lee, lee2020_dir):
         print(f" {o.source.split('/')[-1]:21s} {o.parameter:5.1f}  {str(o.stable):6s}  "
               f"{o.frequency:.4f}  {1e3 * o.amplitude:7.2f}  {100 * o.noise[0] / o.amplitude:6.2f}"
               f"  {1e3 * pitch:9.1f}  {100 * o.noise[1] / pitch:6.2f}")
-    assert seconds < 5.0                                 # ~1 s on an idle 2-core machine
+    # (~1 s on an idle 2-core machine; speed is a benchmark's business, not a test's)
     assert len(ds) == 11 and ds.system == "flutter"
     stable = ds.stable()
     assert stable.sum() == 4 and (~stable).sum() == 7

@@ -12,7 +12,7 @@ import sys
 from tests.test_structure import REPO, import_graph, package_modules
 
 # each layer may import from the layers before it, never from one after it
-UDE_FIT_LAYERS = ("_precision", "_fourier", "data", "models", "training", "analysis", "model_file", "fitting",
+UDE_FIT_LAYERS = ("_precision", "_fourier", "_systems", "data", "models", "training", "analysis", "model_file", "fitting",
                   "discovery", "report", "pipeline", "sweep", "cli")
 
 

@@ -22,7 +22,7 @@ def data_scatter(ds: OrbitDataset) -> float:
     unbiased estimate of a regression's residual variance does."""
     A, a_max = ds.amplitudes(), float(ds.amplitudes().max())
     P = ds.parameters()
-    groups = [np.ones(len(ds), bool)] if ds.system == "flutter" else [
+    groups = [np.ones(len(ds), bool)] if ds.kind.autonomous else [
         np.round(ds.frequencies(), 6) == f for f in ds.frequencies_group()]
     res, dof = [], 0
     for g in groups:
@@ -92,7 +92,7 @@ def judge_starts(start_metrics: list, mech_m: dict, opts: FitOptions,
 def needs_fold(ds: OrbitDataset) -> bool:
     """Aerofoil data with stable and unstable orbits: the branch from the Hopf point turns
     at a fold to become the stable one, so a diagram needs one."""
-    return ds.system == "flutter" and any(o.stable is True for o in ds) and any(
+    return ds.kind.autonomous and any(o.stable is True for o in ds) and any(
         o.stable is False for o in ds)
 
 

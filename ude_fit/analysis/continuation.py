@@ -31,6 +31,7 @@ import numpy as np
 from scipy.optimize import brentq
 
 from .._fourier import first_harmonic_amplitude
+from .._systems import system_kind
 from ..models.flow import rk4_orbit
 from ..models.mechanistic import Drive
 from ..models.ude import UDE
@@ -517,7 +518,7 @@ def orbit_at(model: UDE, branch: Branch, param: float, stable: bool | None, *, s
     _, k, w = min(cands)
     y0 = (1 - w) * branch.y0[k] + w * branch.y0[k + 1]
     T = (1 - w) * branch.period[k] + w * branch.period[k + 1]
-    if branch.system == "flutter":
+    if system_kind(branch.system).autonomous:
         su = np.concatenate([np.asarray(scales, float), [T, max(1.0, abs(param))]])
         prob = _Autonomous(model, su, n)
         us = np.concatenate([y0, [T, param]]) / su

@@ -16,7 +16,7 @@ from .metrics import branch_metrics, locations, model_orbit, with_reference
 def diagram_ranges(ds: OrbitDataset) -> dict:
     """Parameter and amplitude windows for tracing, from the data's own extent."""
     A = ds.amplitudes()
-    if ds.system == "flutter":
+    if ds.kind.autonomous:
         V = ds.parameters()
         span = max(np.ptp(V), 0.1 * V.max())
         return {"v_range": [max(0.5, V.min() - 1.5 * span), V.max() + 0.75 * span],

@@ -91,7 +91,7 @@ def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> dict:
         points.append(rec)
     out = _summary(points, a_max)
     out["points"] = points
-    if ds.system == "oscillator":
+    if ds.kind.forced:
         out["per_frequency"] = {
             f"{f:g}": _summary([p for p in points if round(p["frequency"], 6) == f], a_max)
             for f in ds.frequencies_group()}

@@ -10,6 +10,7 @@ import h5py
 import numpy as np
 
 from .._fourier import K, NCOEF, _fit, fourier_fit, refine_frequency
+from .._systems import KINDS
 from .orbit import (COORDINATES, DataError, Orbit, OrbitDataset, _check_file, _flutter_frame,
                     _one_line, _oscillator_frame)
 
@@ -271,7 +272,7 @@ def _read_campaign(f: h5py.File, path: str) -> OrbitDataset:
             label = f"{path}#{a.get('key', 'points/' + name)}"
             settings = _attrs(g["settings"]) if isinstance(g.get("settings"), h5py.Group) else {}
             rec = _record(g)
-            if system == "flutter":
+            if KINDS[system].autonomous:
                 if rec is not None and not sample_rate > 0:
                     raise DataError(f"{path}: raw records but no sample_rate in "
                                     "/metadata/identity")

@@ -17,7 +17,7 @@ def estimate_from_data(ds: OrbitDataset) -> dict:
     Fold: the vertex of a parabola V(A) through the points around the smallest airspeed.
     Either is None where the data cannot support it. Rough: for reporting when no truth.
     """
-    if ds.system != "flutter" or len(ds.orbits) < 3:
+    if not ds.kind.autonomous or len(ds.orbits) < 3:
         return {"hopf": None, "fold": None}
     V, A = ds.parameters(), ds.amplitudes()
     known = ds.known_stability()

@@ -35,9 +35,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._fourier import K, NCOEF, _basis, shift_phase
+from .._systems import KINDS, SystemKind, system_kind
 
-COORDINATES = {"flutter": ("h", "alpha"), "oscillator": ("x",)}
-PARAMETER_NAMES = {"flutter": "airspeed", "oscillator": "forcing_amplitude"}
+COORDINATES = {name: k.coordinates for name, k in KINDS.items()}
+PARAMETER_NAMES = {name: k.parameter for name, k in KINDS.items()}
 
 
 class DataError(Exception):
@@ -131,8 +132,7 @@ class OrbitDataset:
     sources: tuple[str, ...]
 
     def __post_init__(self):
-        if self.system not in COORDINATES:
-            raise ValueError(f"system must be 'flutter' or 'oscillator', not {self.system!r}")
+        system_kind(self.system)                      # a ValueError naming the known ones
         object.__setattr__(self, "orbits", tuple(self.orbits))
         object.__setattr__(self, "sources", tuple(str(s) for s in self.sources))
         n = len(COORDINATES[self.system])
@@ -140,10 +140,15 @@ class OrbitDataset:
             if o.coeffs.shape[0] != n:
                 raise ValueError(f"{o.source}: a {self.system} orbit has {n} coordinates, "
                                  f"this one {o.coeffs.shape[0]}")
-            if (o.forcing is None) != (self.system == "flutter"):
+            if (o.forcing is None) != self.kind.autonomous:
                 raise ValueError(f"{o.source}: forcing must be given for oscillator orbits only")
 
     # ---- basics ---------------------------------------------------------------------------
+    @property
+    def kind(self) -> SystemKind:
+        """What kind of system the orbits come from (autonomous aerofoil, forced oscillator)."""
+        return KINDS[self.system]
+
     def __len__(self) -> int:
         return len(self.orbits)
 
@@ -192,7 +197,7 @@ class OrbitDataset:
 
     def forcings(self) -> np.ndarray | None:
         """(n_orbits, 15) excitation coefficients (oscillator), None for flutter."""
-        if self.system == "flutter":
+        if self.kind.autonomous:
             return None
         return (np.stack([o.forcing for o in self.orbits]) if self.orbits
                 else np.zeros((0, NCOEF)))
@@ -218,7 +223,7 @@ class OrbitDataset:
 
         Only the forced system's frequency is a setting that groups orbits into S-curves;
         an aerofoil's frequency is a measured output, so this raises for flutter."""
-        if self.system != "oscillator":
+        if not self.kind.forced:
             raise DataError("frequencies_group: only for the forced oscillator (a flutter "
                             "orbit's frequency is an output, not a group)")
         return np.unique(np.round(self.frequencies(), 6))
@@ -254,7 +259,7 @@ class OrbitDataset:
             "qdot": w * np.einsum("mcj,nj->mnc", C, dB),
             "qddot": w ** 2 * np.einsum("mcj,nj->mnc", C, ddB),
         }
-        if self.system == "oscillator":
+        if self.kind.forced:
             out["forcing"] = self.forcings() @ B.T
         return out
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from .._systems import system_kind
 from ..discovery.explain import EQUATIONS
 from .format import location, pct
 
@@ -105,7 +106,7 @@ def render_loop(doc: dict, figures: dict) -> str:
           _row("branch amplitude error, max", pct, "branch_max", cols),
           _row("missed points", lambda x: "—" if x is None else str(x), "missed", cols),
           _row("one-period trajectory error, RMS", pct, "trajectory_rms", cols)]
-    if doc["system"] == "flutter":
+    if system_kind(doc["system"]).autonomous:
         L.append(_row("Hopf airspeed (m/s)", location, "hopf", cols))
         L.append(_row("fold airspeed (m/s)", location, "fold", cols))
     else:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from .._systems import system_kind
 from .format import location, pct
 
 
@@ -16,8 +17,8 @@ def _ref(m: dict, key: str) -> str:
 def render(metrics: dict, figures: dict) -> str:
     """Markdown text from ``metrics`` (as written to metrics.json) and figure file names."""
     mech, ude = metrics["mechanistic"], metrics.get("ude")
-    sysname = "aerofoil (flutter)" if metrics["system"] == "flutter" else "forced oscillator"
-    unit = "m/s" if metrics["system"] == "flutter" else "forcing units"
+    kind = system_kind(metrics["system"])
+    sysname, unit = kind.title, kind.parameter_unit
     d = metrics["data"]
     L = [f"# ude-fit report: {sysname}", "",
          f"Written by ude_fit {metrics['version']} on {metrics['written']}; "
@@ -40,7 +41,7 @@ def render(metrics: dict, figures: dict) -> str:
     for (label, f), k in zip(rows, keys):
         a, b = g(k)
         L.append(f"| {label} | {f(a)} | {f(b)} |")
-    if metrics["system"] == "flutter":
+    if kind.autonomous:
         L.append(f"| Hopf airspeed ({unit}) | {location(mech.get('hopf'))} | "
                  f"{location((ude or {}).get('hopf'))} |")
         L.append(f"| fold airspeed ({unit}) | {location(mech.get('fold'))} | "

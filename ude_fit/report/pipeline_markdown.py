@@ -3,6 +3,7 @@ what the loop found missing."""
 
 from __future__ import annotations
 
+from .._systems import system_kind
 from .format import num, pct, short_location
 
 
@@ -33,10 +34,10 @@ def render_pipeline(doc: dict, fitm: dict, loopm: dict) -> str:
              "![every model over the data](diagram.png)", "",
              "## Data", ""]
     d = doc["data"]
-    what = ("airspeed", "m/s") if doc["system"] == "flutter" else \
-        ("forcing amplitude", "m/s²")
-    lines += [f"{d['points']} periodic orbits, {what[0]} {d['parameter_range'][0]:.4g} to "
-              f"{d['parameter_range'][1]:.4g} {what[1]}, from "
+    kind = system_kind(doc["system"])
+    lines += [f"{d['points']} periodic orbits, {kind.parameter_label} "
+              f"{d['parameter_range'][0]:.4g} to {d['parameter_range'][1]:.4g} "
+              f"{kind.parameter_unit}, from "
               + ", ".join(f"`{s}`" for s in d["sources"]) + ".", "",
               "## The models side by side", "",
               "| | mechanistic | UDE | refined (loop) |", "|---|---|---|---|"]
@@ -47,7 +48,7 @@ def render_pipeline(doc: dict, fitm: dict, loopm: dict) -> str:
             ("one-period trajectory error, RMS", "trajectory_rms", pct),
             ("Hopf (error)", "hopf", short_location),
             ("fold (error)", "fold", short_location)]
-    if doc["system"] != "flutter":
+    if kind.forced:
         rows = rows[:4]               # the forced oscillator has folds per frequency only
     for label, key, f in rows:
         lines.append(f"| {label} | {f(m.get(key))} | {f(u.get(key))} | {f(r.get(key))} |")

@@ -20,6 +20,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
+from .._systems import system_kind
 from ..analysis.continuation import Branch
 from ..analysis.diagram_type import Diagram
 from ..analysis.metrics import model_orbit
@@ -91,7 +92,7 @@ def _legend_handles(ds, names, colours, missing, system) -> list:
         h.append(Line2D([], [], marker="s", mfc=_UNKNOWN, mec=_UNKNOWN, ls="none",
                         label="measured, stability unknown"))
     h.append(Line2D([], [], marker="D", ms=5, color="0.5", mec="black", ls="none", label="fold"))
-    if system == "flutter":
+    if system_kind(system).autonomous:
         h.append(Line2D([], [], marker="*", ms=11, color="0.5", mec="black", ls="none",
                         label="Hopf (equilibrium: amplitude 0)"))
     return h
@@ -122,7 +123,7 @@ def diagram_figure(ds, diagrams: dict, *, title: str = "") -> Figure:
     names = list(diagrams)
     colours = _colours(names)
     missing = {n for n, d in diagrams.items() if not d}
-    if ds.system == "flutter":
+    if ds.kind.autonomous:
         fig = Figure(figsize=(8.0, 5.2), layout="constrained")
         ax = fig.add_subplot()
         branches = [b for b in (_branch_for(diagrams[n], None) for n in names) if b is not None]
@@ -214,7 +215,7 @@ def phase_figure(ds, models: dict, diagrams: dict, *, scales, max_points: int = 
     idx = choose_orbits(ds, max_points)
     names = list(dict.fromkeys([*models, *diagrams]))
     colours = _colours(names)
-    flutter = ds.system == "flutter"
+    flutter = ds.kind.autonomous
     fig, axes = _grid(len(idx), 4.0, 3.5)
     for ax, i in zip(axes, idx):
         o = ds[i]
@@ -284,7 +285,7 @@ def residual_figure(explanation, *, parameter_label: str) -> Figure:
     states = _STATE_LABELS[system]
     fig = Figure(figsize=(3.2 * len(states), 2.8 * len(eqs) + 0.4), layout="constrained")
     axes = fig.subplots(len(eqs), len(states), squeeze=False)
-    par = np.asarray(S["V"] if system == "flutter" else S["w"] / (2 * math.pi))
+    par = np.asarray(S["V"] if system_kind(system).autonomous else S["w"] / (2 * math.pi))
     for i, eq in enumerate(eqs):
         r = np.asarray(explanation.residual["residual"][eq])
         sel = explanation.selections[i]
@@ -305,7 +306,7 @@ def residual_figure(explanation, *, parameter_label: str) -> Figure:
 
 def parameter_label(system: str) -> str:
     """The residual figure's colour axis: the parameter each orbit was measured at."""
-    return "airspeed (m/s)" if system == "flutter" else "forcing frequency (Hz)"
+    return system_kind(system).diagram_axis
 
 
 def plot_residuals(path, explanation, *, parameter_label: str):

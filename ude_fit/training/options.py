@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from .._systems import system_kind
 from ..models.mechanistic import SYSTEMS
 from .penalties import Penalty
 
@@ -161,12 +162,12 @@ class FitOptions:
             v = getattr(self, name)
             if v is not None and not math.isfinite(v):
                 raise ValueError(f"--{name.replace('_', '-')} must be finite, not {v!r}")
-        if self.system != "flutter" and self.reference():
+        if not system_kind(self.system).autonomous and self.reference():
             raise ValueError("--reference-hopf/--reference-fold apply to --system flutter "
                              "only")
         active = [p for p in self.train.penalties if p.weight]
         aero = [p for p in active if p.aerofoil_only]
-        if self.system != "flutter" and aero:
+        if not system_kind(self.system).autonomous and aero:
             raise ValueError("/".join(f"--{p.option}" for p in aero)
                              + " apply to --system flutter only")
         if self.approximator != "nn":

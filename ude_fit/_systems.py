@@ -1,0 +1,46 @@
+"""The two kinds of rig the data can come from, as facts in one table.
+
+The data, analysis and report layers sit below (or beside) the mechanistic model classes, so
+they cannot ask a model what kind of system it describes; they look the kind up here by the
+name the data carries ("flutter" or "oscillator"). The distinction that drives the numerics is
+physical: an *autonomous* system (the aerofoil) has an equilibrium that loses stability at a
+Hopf point, with limit cycles whose frequency is an output; a *forced* one (the shaker-driven
+oscillator) has periodic responses at an imposed frequency, grouped into one S-curve per
+frequency.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class SystemKind:
+    name: str                       # as in the data files and on the command line
+    title: str                      # for reports
+    coordinates: tuple[str, ...]    # the measured coordinates, in the data's order
+    parameter: str                  # the bifurcation parameter's name in the data
+    parameter_label: str            # ... as a report states it
+    parameter_unit: str
+    diagram_axis: str               # the horizontal axis of a diagram or residual figure
+    autonomous: bool                # limit cycles of an autonomous system (Hopf, folds in V)
+
+    @property
+    def forced(self) -> bool:
+        return not self.autonomous
+
+
+AEROFOIL = SystemKind("flutter", "aerofoil (flutter)", ("h", "alpha"), "airspeed", "airspeed",
+                      "m/s", "airspeed (m/s)", autonomous=True)
+OSCILLATOR = SystemKind("oscillator", "forced oscillator", ("x",), "forcing_amplitude",
+                        "forcing amplitude", "m/s²", "forcing frequency (Hz)", autonomous=False)
+KINDS = {k.name: k for k in (AEROFOIL, OSCILLATOR)}
+
+
+def system_kind(name: str) -> SystemKind:
+    """The kind named ``name``; a ValueError naming the known ones otherwise."""
+    try:
+        return KINDS[name]
+    except KeyError:
+        raise ValueError(f"system must be one of {', '.join(map(repr, KINDS))}, "
+                         f"not {name!r}") from None
