@@ -157,3 +157,43 @@ def describe(location: Location, S: dict) -> Location:
         for s in loc.significant:
             s.description = describe_shape(location.system, loc, s, S)
     return location
+
+
+def _depends_on(system: str, key: str, shape, S: dict) -> list:
+    """The states an effect's columns read (each state scaled in turn: do they change?)."""
+    from ..models.library import effect
+    e = effect(system, key)
+    ref = columns(e, S, shape)
+    out = []
+    for k, (name, _) in STATES[system].items():
+        moved = columns(e, {**S, k: 1.5 * np.asarray(S[k], float) + 0.1}, shape)
+        if not np.allclose(moved, ref, rtol=1e-9, atol=1e-12):
+            out.append(name)
+    return out
+
+
+def effect_fields(system: str, key: str, shape, coefficients, locations: list,
+                  S: dict | None) -> dict:
+    """What metrics.json's ``effect`` says beside name, terms and coefficients: the
+    equation, the states it depends on, its shape class and the region where it acts."""
+    from ..models.forms import EQUATIONS, parse_located_key
+    from ..models.library import effect
+    e = effect(system, key)
+    out = {"equation": EQUATIONS[system][e.equation]}
+    parsed = parse_located_key(system, key)
+    if parsed is not None:
+        _, state, f = parsed
+        name, role = STATES[system][state]
+        c = float(coefficients[0]) if len(coefficients) else 0.0
+        out.update(states=[name], shape_class=f.label, description=f.phrase(name, role, c, shape),
+                   region=f.region(name, shape))
+        return out
+    states = _depends_on(system, key, shape, S) if S is not None else []
+    out.update(states=states, shape_class=e.kind, description=e.name,
+               region={s: [None, None] for s in states})
+    for loc in locations[:1]:
+        for s in loc.significant():
+            d = s.description
+            if d is not None and d.best.key == key:
+                out.update(description=d.phrase(), located_in=d.state)
+    return out
