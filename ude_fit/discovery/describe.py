@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..models.forms import FORMS, STATES, located_key
+from ..models.forms import FORMS, SPLINE, STATES, located_key
 from ..models.library import LIBRARY, STRUCTURAL, band_limited, columns
 from .locate import EquationLocation, Location, Shape, _solve_normal
 
@@ -45,6 +45,7 @@ class Description:
     state: str
     role: str
     best: Contender                       # the class (or catalogue term) named
+    spline: Contender                     # the shape itself as a term (heave.h.spline)
     named: bool                           # False: no class fits as well as the spline
     phrase_text: str
     region: dict
@@ -58,6 +59,7 @@ class Description:
                 "key": self.best.key, "named": self.named, "phrase": self.phrase_text,
                 "region": self.region, "shape": self.best.shape,
                 "coefficients": self.best.coefficients,
+                "spline": self.spline.to_dict(),
                 "evidence": [c.to_dict() for c in self.contenders]}
 
 
@@ -148,7 +150,12 @@ def describe_shape(system: str, loc: EquationLocation, shape: Shape, S: dict) ->
         phrase = f"an effect in {eq_name} depending on {name}, shaped like {phrase}"
         region = {name: shape.region.get(name)}
     contenders = sorted(out + [spline, none], key=lambda c: c.bic)
-    return Description(eq_name, name, role, best, named, phrase, region, contenders)
+    cols = band_limited(np.asarray(SPLINE.formula(np, u, SPLINE.thresholds(u)[0]), float),
+                        per_orbit)
+    consider(located_key(system, loc.equation, shape.state, SPLINE.key), SPLINE.label, False,
+             cols, SPLINE.n_parameters, SPLINE.thresholds(u)[0])
+    as_term = out.pop()
+    return Description(eq_name, name, role, best, as_term, named, phrase, region, contenders)
 
 
 def describe(location: Location, S: dict) -> Location:

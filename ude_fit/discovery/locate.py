@@ -19,9 +19,11 @@ is not a shape of one state and must not be drawn as one.
 * uncertainty bands from the penalised least-squares covariance (the Bayesian one of
   Wahba and Silverman), the noise variance from the residual with the samples of an orbit
   counted as the 2K+1 numbers they are;
-* a shape is significant when dropping it raises the held-out error by more than two
-  standard errors of the paired per-fold differences: a test at a conventional level,
-  nothing fitted to any case;
+* a shape is significant when an approximate F test (Wood's, with an orbit's samples
+  counted as the 2K+1 numbers they are) rejects it being zero at 1 %, shared by the
+  equation's shapes (Bonferroni), *and* dropping it raises the leave-orbits-out error by
+  more than one standard error of the paired per-fold differences (the one-standard-error
+  rule ``explain`` uses): conventional levels, nothing fitted to any case;
 * ``region``: where the band of the shape, less its best straight line over the data,
   excludes zero (the interval hull; None for an end at the edge of the data).
 
@@ -303,7 +305,7 @@ def locate_equation(S: dict, y: np.ndarray, groups: np.ndarray, *, equation: int
         shape = Shape(equation, sm.key, states[sm.key], grid, value * scale, band * scale,
                       x, (fs + res) * scale, design.lams[i], edf,
                       gain * scale ** 2, se * scale ** 2, p,
-                      bool(gain > 0 and p < LEVEL / len(smooths)), share)
+                      bool(gain > se and p < LEVEL / len(smooths)), share)
         shape.region = {shape.name: _region(grid, value, band)}
         shapes.append(shape)
     shapes.sort(key=lambda s: -s.cv_gain)
@@ -338,11 +340,12 @@ def _region(grid, value, band) -> list | None:
 
 
 def nuisance_columns(system: str, S: dict, equation: int) -> np.ndarray:
-    """The catalogue's formula-based linear and parameter-dependent linear terms of one
-    equation (what a quasi-steady model is known to lack): nuisance for the locator."""
+    """The catalogue's linear and parameter-dependent linear terms of one equation that
+    need no shape parameter (retuned couplings, airspeed-dependent terms, the Jones wake
+    lag of textbook constants: what a quasi-steady model is known to lack): nuisance for
+    the locator, so a linear mismatch is not drawn as a shape of one state."""
     out = [columns(e, S, None) for e in LIBRARY[system]
-           if e.equation == equation and e.kind not in (STRUCTURAL, HIDDEN)
-           and e.formula is not None and not e.grid]
+           if e.equation == equation and e.kind not in (STRUCTURAL, HIDDEN) and not e.grid]
     return np.concatenate(out, 1) if out else np.zeros((len(S["w"]), 0))
 
 

@@ -32,7 +32,7 @@ from ..models.library import LIBRARY, STRUCTURAL, effect, states_of
 from ..models.refined import describe
 from ..models.ude import UDE
 from ..training.identify import augment, identify
-from .describe import describe as describe_shapes, effect_fields
+from .describe import VERY_STRONG, describe as describe_shapes, effect_fields
 from .explain import choose_shape, explain
 from .locate import Location, locate
 
@@ -198,6 +198,9 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
         if located is not None and catalogue is not None and located["key"] == catalogue["key"]:
             located = None
         candidates, why_tried = [c for c in (catalogue, located) if c is not None], None
+        spline = _spline_candidate(loc)
+        if spline is not None:
+            candidates.append(spline)
         if not candidates:
             # nothing beats the noise: a linear term may still be worth a try on the
             # diagram (kept only if it improves it); a structural effect never is
@@ -219,7 +222,10 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                                                      ref, ref_source, ident)))
         best = tried[0]
         for t in tried[1:]:
-            if _better(t[3].metrics, best[3].metrics, 0.0):
+            # the spline (many parameters) must beat a named form as the loop's own rule
+            # asks of any addition; a named candidate just has to do better
+            gain = min_gain if t[0].get("spline") else 0.0
+            if _better(t[3].metrics, best[3].metrics, gain):
                 best = t
         for cand, _, _, st in tried:
             if cand is not best[0]:
@@ -248,6 +254,19 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     return LoopResult(system, before, current, added, steps=steps,
                       explanations=explanations, locations=locations, ranges=ranges,
                       seconds=time.perf_counter() - t0, states=S)
+
+
+def _spline_candidate(loc: Location) -> dict | None:
+    """The top located shape as a spline term, when no class or catalogue term describes
+    it: the spline beats the best by very strong evidence (BIC)."""
+    sig = loc.significant()
+    if not sig or sig[0].description is None:
+        return None
+    d = sig[0].description
+    if d.spline.bic > d.best.bic - VERY_STRONG:
+        return None
+    return {"key": d.spline.key, "name": f"{d.phrase()}: the shape itself (spline of "
+            f"{d.state})", "shape": d.spline.shape, "kind": "located shape", "spline": True}
 
 
 def _located_candidate(loc: Location, system: str) -> dict | None:

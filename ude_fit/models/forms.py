@@ -151,7 +151,32 @@ FORMS = (
 )
 
 
+class _Spline(Form):
+    """No class: the shape itself, a cubic regression spline of the state scaled by its
+    largest size on the data (``d``), held constant beyond it (a term never extrapolates
+    a cubic), with knots at fixed fractions: the located shape carried into the model."""
+
+    def phrase(self, name, role, c, d):
+        return f"a shape of {name} (regression spline)"
+
+
+SPLINE_KNOTS = tuple(float(k) for k in np.linspace(-1.0, 1.0, 9)[1:-1])
+
+
+def _spline_columns(xp, u, d):
+    c = xp.clip(u / d, -1.0, 1.0)
+    return xp.stack([c ** 2, c ** 3] + [xp.maximum(c - k, 0.0) ** 3 for k in SPLINE_KNOTS], -1)
+
+
+SPLINE = _Spline("spline", "regression spline (no class)", _spline_columns,
+                 n_terms=2 + len(SPLINE_KNOTS),
+                 thresholds=lambda u: (float(np.max(np.abs(u))) or 1.0,),
+                 terms=("c^2", "c^3") + tuple(f"max(c - {k:.2f}, 0)^3" for k in SPLINE_KNOTS))
+
+
 def form(key: str) -> Form:
+    if key == SPLINE.key:
+        return SPLINE
     for f in FORMS:
         if f.key == key:
             return f
@@ -169,6 +194,6 @@ def parse_located_key(system: str, key: str):
     if len(parts) != 3 or parts[0] not in EQUATIONS[system]:
         return None
     by_name = {v[0]: k for k, v in STATES[system].items()}
-    if parts[1] not in by_name or parts[2] not in {f.key for f in FORMS}:
+    if parts[1] not in by_name or parts[2] not in {f.key for f in FORMS + (SPLINE,)}:
         return None
     return EQUATIONS[system].index(parts[0]), by_name[parts[1]], form(parts[2])

@@ -296,7 +296,8 @@ def located_effect(system: str, key: str) -> Effect | None:
     equation, state, f = parsed
     name = STATES[system][state][0]
     return Effect(key, f"{f.label} in {name} ({EQUATIONS[system][equation]} equation)",
-                  equation, tuple(t.replace("u", name) for t in f.terms),
+                  equation, tuple(t.replace("u", name).replace("c", f"({name}/d)")
+                                  for t in f.terms),
                   lambda xp, S, d: f.formula(xp, S[state], d), STRUCTURAL,
                   "d" if f.thresholds else "",
                   (lambda S: f.thresholds(np.asarray(S[state], float))) if f.thresholds
