@@ -90,39 +90,27 @@ def describe_shape(system: str, loc: EquationLocation, shape: Shape, S: dict) ->
     def consider(key, label, catalogue, cols, k, d):
         norms = np.sqrt(np.mean(cols ** 2, 0))
         if not np.all(norms > 0):
-            return
+            return None
         rss, c = _fit_with(design, yn, i, cols / norms)
-        out.append(Contender(key, label, catalogue, k, d, (c * scale / norms).tolist(),
-                             _bic(rss, n, n_eff, k), rss))
+        return Contender(key, label, catalogue, k, d, (c * scale / norms).tolist(),
+                         _bic(rss, n, n_eff, k), rss)
+
+    def best_over(grid, make):
+        """The best threshold of one candidate: ``make(d)`` -> (key, label, catalogue,
+        columns, k)."""
+        found = [c for c in (consider(*make(d), d) for d in grid) if c is not None]
+        if found:
+            out.append(min(found, key=lambda c: c.bic))
 
     per_orbit = int(S["n"])
     for f in FORMS:
-        best = None
-        for d in (f.thresholds(u) if f.thresholds else (None,)):
-            cols = band_limited(np.asarray(f.formula(np, u, d), float), per_orbit)
-            before = len(out)
-            consider(located_key(system, loc.equation, shape.state, f.key), f.label, False,
-                     cols, f.n_parameters, d)
-            if len(out) > before:
-                c = out.pop()
-                if best is None or c.bic < best.bic:
-                    best = c
-        if best is not None:
-            out.append(best)
+        best_over(f.thresholds(u) if f.thresholds else (None,), lambda d, f=f: (
+            located_key(system, loc.equation, shape.state, f.key), f.label, False,
+            band_limited(np.asarray(f.formula(np, u, d), float), per_orbit), f.n_parameters))
     for e in LIBRARY[system]:
-        if e.equation != loc.equation or e.kind != STRUCTURAL or e.formula is None:
-            continue
-        best = None
-        for d in (e.grid(S) if e.grid else (None,)):
-            before = len(out)
-            consider(e.key, e.name, True, columns(e, S, d),
-                     len(e.terms) + (1 if e.grid else 0), d)
-            if len(out) > before:
-                c = out.pop()
-                if best is None or c.bic < best.bic:
-                    best = c
-        if best is not None:
-            out.append(best)
+        if e.equation == loc.equation and e.kind == STRUCTURAL and e.formula is not None:
+            best_over(e.grid(S) if e.grid else (None,), lambda d, e=e: (
+                e.key, e.name, True, columns(e, S, d), len(e.terms) + (1 if e.grid else 0)))
     _, b = design.fit()
     rss_spline = float(np.sum((yn - design.X @ b) ** 2))
     spline = Contender("spline", "spline (no class)", False, shape.edf, None, [],
@@ -152,9 +140,8 @@ def describe_shape(system: str, loc: EquationLocation, shape: Shape, S: dict) ->
     contenders = sorted(out + [spline, none], key=lambda c: c.bic)
     cols = band_limited(np.asarray(SPLINE.formula(np, u, SPLINE.thresholds(u)[0]), float),
                         per_orbit)
-    consider(located_key(system, loc.equation, shape.state, SPLINE.key), SPLINE.label, False,
-             cols, SPLINE.n_parameters, SPLINE.thresholds(u)[0])
-    as_term = out.pop()
+    as_term = consider(located_key(system, loc.equation, shape.state, SPLINE.key),
+                       SPLINE.label, False, cols, SPLINE.n_parameters, SPLINE.thresholds(u)[0])
     return Description(eq_name, name, role, best, as_term, named, phrase, region, contenders)
 
 
