@@ -45,7 +45,7 @@ class Description:
     state: str
     role: str
     best: Contender                       # the class (or catalogue term) named
-    spline: Contender                     # the shape itself as a term (heave.h.spline)
+    spline: Contender | None              # the shape itself as a term (heave.h.spline)
     named: bool                           # False: no class fits as well as the spline
     phrase_text: str
     region: dict
@@ -59,7 +59,7 @@ class Description:
                 "key": self.best.key, "named": self.named, "phrase": self.phrase_text,
                 "region": self.region, "shape": self.best.shape,
                 "coefficients": self.best.coefficients,
-                "spline": self.spline.to_dict(),
+                "spline": None if self.spline is None else self.spline.to_dict(),
                 "evidence": [c.to_dict() for c in self.contenders]}
 
 

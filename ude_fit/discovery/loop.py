@@ -263,7 +263,7 @@ def _spline_candidate(loc: Location) -> dict | None:
     if not sig or sig[0].description is None:
         return None
     d = sig[0].description
-    if d.spline.bic > d.best.bic - VERY_STRONG:
+    if d.spline is None or d.spline.bic > d.best.bic - VERY_STRONG:
         return None
     return {"key": d.spline.key, "name": f"{d.phrase()}: the shape itself (spline of "
             f"{d.state})", "shape": d.spline.shape, "kind": "located shape", "spline": True}
