@@ -178,8 +178,13 @@ def _brief(m: dict) -> dict:
 
 def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                min_gain: float = 0.1, reference=None, seed: int = 0, bootstrap: int = 200,
-               samples: int = 32, progress=None) -> LoopResult:
-    """explain -> add the top-ranked effect -> refit, while it improves the diagram."""
+               samples: int = 32, locate_shapes: bool = False, progress=None) -> LoopResult:
+    """explain -> add the top-ranked effect -> refit, while it improves the diagram.
+
+    With ``locate_shapes`` each step also locates the residual as shapes of single states
+    (:mod:`.locate`), describes the strongest (:mod:`.describe`) and tries its form beside the
+    catalogue's top candidate (experimental: off by default until the campaign figures of
+    docs/fitting.md hold for every catalogue case)."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
     data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
@@ -191,23 +196,24 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
         say(event="stage", stage=f"explaining the residual (step {step})")
         ex = explain(data, system, added=tuple(added), seed=seed, bootstrap=bootstrap)
         explanations.append(ex)
-        loc = describe_shapes(locate(data, system, added=tuple(added), seed=seed), S)
-        locations.append(loc)
         catalogue = ex.top() if ex.significant else None
-        located = _located_candidate(loc, system)
-        if located is not None and catalogue is not None and located["key"] == catalogue["key"]:
-            located = None
-        candidates, why_tried = [c for c in (catalogue, located) if c is not None], None
-        spline = _spline_candidate(loc)
-        if spline is not None:
-            candidates.append(spline)
+        located = spline = None
+        if locate_shapes:
+            loc = describe_shapes(locate(data, system, added=tuple(added), seed=seed), S)
+            locations.append(loc)
+            located, spline = _located_candidate(loc, system), _spline_candidate(loc)
+            if located is not None and catalogue is not None \
+                    and located["key"] == catalogue["key"]:
+                located = None
+        candidates, why_tried = [c for c in (catalogue, located, spline) if c is not None], None
         if not candidates:
             # nothing beats the noise: a linear term may still be worth a try on the
             # diagram (kept only if it improves it); a structural effect never is
             top = ex.best_linear_term()
             if top is None:
                 steps.append({"step": step, "candidate": None, "kept": False,
-                              "reason": ex.summary + "; " + loc.summary()})
+                              "reason": ex.summary + "".join(
+                                  "; " + loc.summary() for loc in locations[-1:])})
                 break
             why_tried = "not significant by cross-validation; a linear term tried on the diagram"
             candidates = [top]

@@ -3,8 +3,9 @@
 bring the branch error (missed points counted) to at most a third of the mechanistic
 model's. Each campaign: the rig's own true orbits held by its board at sigma = 0.02.
 
-These are slow (a campaign and a loop each, minutes): run this file alone, e.g.
-``python3 -m pytest -q tests/test_ude_locate_loop.py``."""
+These are slow (a campaign and a loop each, 5-10 minutes on 2 cores), so they are a measurement
+run by hand, not part of the suite: ``python3 -m pytest -q -s benchmarks/locate_cases.py``.
+The loop runs with the experimental ``--locate-shapes``."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ import jax  # noqa: E402  (after the imports above, before any array)
 
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
-PLUGINS = Path(__file__).parent / "plugins"
+PLUGINS = Path(__file__).resolve().parents[1] / "tests" / "plugins"
 AIRSPEEDS = (19.0, 20.0, 21.0, 22.0, 23.0, 24.0, 25.5)
 CASES = {
     # plugin -> (equation, state it depends on)
@@ -47,7 +48,8 @@ def looped(request, tmp_path_factory):
     write_truth_campaign(path, "flutter", airspeeds=AIRSPEEDS, sigma=0.02,
                          plugin=f"{PLUGINS / (name + '.py')}:force", held_within=0.2)
     out = tmp / "loop"
-    rc = cli.main(["loop", str(path), "--system", "flutter", "--out", str(out), "--quiet"])
+    rc = cli.main(["loop", str(path), "--system", "flutter", "--locate-shapes", "--out", str(out),
+                   "--quiet"])
     return name, rc, json.loads((out / "metrics.json").read_text()), out
 
 
