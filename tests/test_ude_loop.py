@@ -132,7 +132,7 @@ def test_plugin_effect_gets_its_closest_candidate(loops):
     rc, m, out, _ = loops["plugin"]
     assert rc == 0
     e = m["effect"]
-    assert e is not None and e["kind"] == "structural nonlinearity" and e["equation"] == 1
+    assert e is not None and e["kind"] == "structural nonlinearity" and e["equation"] == "pitch"
     assert e["name"] in (out / "report.md").read_text()
     print(f"plugin (gap spring, tanh form): closest {e['name']}; branch RMS (missed counted) "
           f"{100 * _rms(m['before']):.2f} % -> {100 * _rms(m['after']):.2f} %")

@@ -47,6 +47,9 @@ def add_parsers(sub) -> None:
     lp.add_argument("--min-gain", type=nonnegative_float("--min-gain"), default=0.1,
                     help="keep an effect only if the branch RMS error falls by this fraction "
                     "(or fewer points are missed; default 0.1)")
+    lp.add_argument("--locate-shapes", action="store_true",
+                    help="experimental: also locate the residual as shapes of single states, "
+                    "name their class and try the form beside the catalogue's candidate")
     _add_ude(lp)
 
 
@@ -90,5 +93,6 @@ def run_loop(args, argv) -> int:
     ds = load(args.data, args.system)
     progress = Progress(args.quiet)
     res = close_loop(ds, args.system, max_effects=args.max_effects, min_gain=args.min_gain,
-                     seed=args.seed, bootstrap=args.bootstrap, progress=progress)
+                     seed=args.seed, bootstrap=args.bootstrap,
+                     locate_shapes=args.locate_shapes, progress=progress)
     return _finish(args, argv, "loop", ds, res, progress)

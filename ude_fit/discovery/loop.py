@@ -28,11 +28,13 @@ import numpy as np
 from ..analysis.diagram import _evaluate
 from ..data.orbit import OrbitDataset
 from ..fitting import fit, identify_mechanistic, prepare
-from ..models.library import LIBRARY, STRUCTURAL, effect
+from ..models.library import LIBRARY, STRUCTURAL, effect, states_of
 from ..models.refined import describe
 from ..models.ude import UDE
 from ..training.identify import augment, identify
+from .describe import VERY_STRONG, describe as describe_shapes, effect_fields
 from .explain import choose_shape, explain
+from .locate import Location, locate
 
 
 
@@ -55,9 +57,11 @@ class LoopResult:
     added: list                       # [(key, shape)] kept, in order
     steps: list = field(default_factory=list)
     explanations: list = field(default_factory=list)   # Explanation per step
+    locations: list = field(default_factory=list)      # Location per step (shapes)
     ude: dict = field(default_factory=dict)             # {"before": FitResult, "after": ...}
     ranges: dict = field(default_factory=dict)
     seconds: float = 0.0
+    states: dict | None = None                          # the samples' states (library)
 
     @property
     def effect(self) -> dict | None:
@@ -69,6 +73,8 @@ class LoopResult:
         std = self.after.identification.get("bootstrap_std", {})
         d["uncertainty"] = [std.get(f"{key}[{t}]") for t in d["terms"]]
         d["kind"] = effect(self.system, key).kind
+        d.update(effect_fields(self.system, key, d["shape"], d["coefficients"],
+                               self.locations, self.states))
         return d
 
 
@@ -172,32 +178,69 @@ def _brief(m: dict) -> dict:
 
 def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                min_gain: float = 0.1, reference=None, seed: int = 0, bootstrap: int = 200,
-               samples: int = 32, progress=None) -> LoopResult:
-    """explain -> add the top-ranked effect -> refit, while it improves the diagram."""
+               samples: int = 32, locate_shapes: bool = False, progress=None) -> LoopResult:
+    """explain -> add the top-ranked effect -> refit, while it improves the diagram.
+
+    With ``locate_shapes`` each step also locates the residual as shapes of single states
+    (:mod:`.locate`), describes the strongest (:mod:`.describe`) and tries its form beside the
+    catalogue's top candidate (experimental: off by default until the campaign figures of
+    docs/fitting.md hold for every catalogue case)."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
     data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
     say(event="stage", stage="mechanistic model")
     before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap)
-    current, added, steps, explanations = before, [], [], []
+    current, added, steps, explanations, locations = before, [], [], [], []
+    S = states_of(data, system)
     for step in range(1, max_effects + 1):
         say(event="stage", stage=f"explaining the residual (step {step})")
         ex = explain(data, system, added=tuple(added), seed=seed, bootstrap=bootstrap)
         explanations.append(ex)
-        top, why_tried = ex.top(), None
-        if top is None or not ex.significant:
+        catalogue = ex.top() if ex.significant else None
+        located = spline = None
+        if locate_shapes:
+            loc = describe_shapes(locate(data, system, added=tuple(added), seed=seed), S)
+            locations.append(loc)
+            located, spline = _located_candidate(loc, system), _spline_candidate(loc)
+            if located is not None and catalogue is not None \
+                    and located["key"] == catalogue["key"]:
+                located = None
+        candidates, why_tried = [c for c in (catalogue, located, spline) if c is not None], None
+        if not candidates:
             # nothing beats the noise: a linear term may still be worth a try on the
             # diagram (kept only if it improves it); a structural effect never is
             top = ex.best_linear_term()
             if top is None:
                 steps.append({"step": step, "candidate": None, "kept": False,
-                              "reason": ex.summary})
+                              "reason": ex.summary + "".join(
+                                  "; " + loc.summary() for loc in locations[-1:])})
                 break
             why_tried = "not significant by cross-validation; a linear term tried on the diagram"
-        trial = added + [(top["key"], top["shape"])]
-        say(event="stage", stage=f"refitting with {top['name']}")
-        mech, ident = _identify(data, system, trial, seed=seed, bootstrap=bootstrap)
-        stage = _stage("refined", UDE(mech), ds, data, ranges, ref, ref_source, ident)
+            candidates = [top]
+        # the catalogue's top candidate and the located shape's form (when they differ)
+        # are both tried on the diagram; the better goes on
+        tried = []
+        for cand in candidates:
+            trial = added + [(cand["key"], cand["shape"])]
+            say(event="stage", stage=f"refitting with {cand['name']}")
+            mech, ident = _identify(data, system, trial, seed=seed, bootstrap=bootstrap)
+            tried.append((cand, trial, ident, _stage("refined", UDE(mech), ds, data, ranges,
+                                                     ref, ref_source, ident)))
+        best = tried[0]
+        for t in tried[1:]:
+            # the spline (many parameters) must beat a named form as the loop's own rule
+            # asks of any addition; a named candidate just has to do better
+            gain = min_gain if t[0].get("spline") else 0.0
+            if _better(t[3].metrics, best[3].metrics, gain):
+                best = t
+        for cand, _, _, st in tried:
+            if cand is not best[0]:
+                steps.append({"step": step, "candidate": cand["key"], "name": cand["name"],
+                              "kind": cand["kind"], "shape": cand["shape"], "kept": False,
+                              "significant": True, "reason": "another candidate of this "
+                              f"step ({best[0]['key']}) does better on the diagram",
+                              "metrics": _brief(st.metrics)})
+        top, trial, ident, stage = best
         keep = _better(stage.metrics, current.metrics, min_gain)
         reason = ("improves the diagram" if keep else
                   f"does not improve the diagram by {min_gain:.0%}")
@@ -215,8 +258,32 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
         added, current = trial, stage
     # nothing kept: "after" is the mechanistic model itself
     return LoopResult(system, before, current, added, steps=steps,
-                      explanations=explanations, ranges=ranges,
-                      seconds=time.perf_counter() - t0)
+                      explanations=explanations, locations=locations, ranges=ranges,
+                      seconds=time.perf_counter() - t0, states=S)
+
+
+def _spline_candidate(loc: Location) -> dict | None:
+    """The top located shape as a spline term, when no class or catalogue term describes
+    it: the spline beats the best by very strong evidence (BIC)."""
+    sig = loc.significant()
+    if not sig or sig[0].description is None:
+        return None
+    d = sig[0].description
+    if d.spline is None or d.spline.bic > d.best.bic - VERY_STRONG:
+        return None
+    return {"key": d.spline.key, "name": f"{d.phrase()}: the shape itself (spline of "
+            f"{d.state})", "shape": d.spline.shape, "kind": "located shape", "spline": True}
+
+
+def _located_candidate(loc: Location, system: str) -> dict | None:
+    """The top significant located shape's description as a loop candidate."""
+    sig = loc.significant()
+    if not sig or sig[0].description is None:
+        return None
+    d = sig[0].description
+    return {"key": d.best.key, "name": d.phrase(), "shape": d.best.shape,
+            "kind": (effect(system, d.best.key).kind if d.best.catalogue
+                     else "located shape"), "located": d.to_dict()}
 
 
 def fit_udes(result: LoopResult, ds: OrbitDataset, opts, *, reference=None, progress=None):
@@ -256,7 +323,10 @@ def metrics_document(result: LoopResult) -> dict:
         return m
 
     first = result.explanations[0] if result.explanations else None
+    where = result.locations[0] if result.locations else None
     return {
+        "location": where.to_dict() if where else None,
+        "locations": [w.to_dict() for w in result.locations[1:]],
         "system": result.system,
         "before": side(result.before, result.ude.get("before")),
         "after": side(result.after, result.ude.get("after")),

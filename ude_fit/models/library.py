@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._fourier import K
+from .forms import EQUATIONS, STATES, parse_located_key
 from .mechanistic import FLUTTER_NOMINAL
 
 
@@ -274,12 +275,33 @@ LIBRARY = {"flutter": FLUTTER_EFFECTS, "oscillator": OSCILLATOR_EFFECTS}
 
 
 def effect(system: str, key: str) -> Effect:
-    """The library's effect called ``key`` (ValueError naming the known ones otherwise)."""
+    """The library's effect called ``key``, or a located shape's generic form
+    (``heave.h.above``, see ``forms``); ValueError naming the known ones otherwise."""
     for e in LIBRARY[system]:
         if e.key == key:
             return e
+    located = located_effect(system, key)
+    if located is not None:
+        return located
     raise ValueError(f"unknown effect {key!r} for the {system} model "
                      f"(known: {', '.join(e.key for e in LIBRARY[system])})")
+
+
+def located_effect(system: str, key: str) -> Effect | None:
+    """The generic form of a located shape as an effect (None if ``key`` is not one): a
+    class of ``forms`` in one equation with one state as argument."""
+    parsed = parse_located_key(system, key)
+    if parsed is None:
+        return None
+    equation, state, f = parsed
+    name = STATES[system][state][0]
+    return Effect(key, f"{f.label} in {name} ({EQUATIONS[system][equation]} equation)",
+                  equation, tuple(t.replace("u", name).replace("c", f"({name}/d)")
+                                  for t in f.terms),
+                  lambda xp, S, d: f.formula(xp, S[state], d), STRUCTURAL,
+                  "d" if f.thresholds else "",
+                  (lambda S: f.thresholds(np.asarray(S[state], float))) if f.thresholds
+                  else None)
 
 
 def states_of(data, system: str) -> dict:

@@ -10,7 +10,7 @@ from ..discovery.loop import metrics_document
 from ..model_file import save_model
 from .files import write_json, write_text
 from .loop_markdown import render_loop
-from .plots import parameter_label, plot_diagram, plot_residuals
+from .plots import parameter_label, plot_diagram, plot_residuals, plot_shapes
 
 
 def write_loop(out, ds, result, provenance: dict, *, name: str, options: dict) -> dict:
@@ -26,6 +26,9 @@ def write_loop(out, ds, result, provenance: dict, *, name: str, options: dict) -
         plot_residuals(os.path.join(out, "residuals.png"), result.explanations[0],
                        parameter_label=parameter_label(system))
         figures["residual of the mechanistic model against the states"] = "residuals.png"
+    if result.locations:
+        plot_shapes(os.path.join(out, "shapes.png"), result.locations[0])
+        figures["shape functions of single states (where the residual is)"] = "shapes.png"
     diagrams = {"mechanistic": result.before.diagram, "refined": result.after.diagram}
     for which in ("before", "after"):
         f = result.ude.get(which)

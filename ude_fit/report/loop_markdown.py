@@ -75,6 +75,25 @@ def _row(label, f, key, cols) -> str:
     return f"| {label} | " + " | ".join(f((c or {}).get(key)) for c in cols) + " |"
 
 
+def location_section(where: dict) -> list:
+    """Where the residual is: the significant shapes of single states and what they are."""
+    L = ["", "## Where the residual is: shapes of single states", "",
+         f"{where['summary']}. Penalised splines of each state per equation (smoothness by "
+         "leave-orbits-out cross-validation, F-type test at 1 % shared by an equation's "
+         "shapes); each significant shape compared with generic classes and catalogue "
+         "terms by BIC.", "", "| equation | state | p | share of residual | what | "
+         "best class (BIC) | region |", "|---|---|---|---|---|---|---|"]
+    for e in where["equations"]:
+        for s in e["shapes"]:
+            if not s["significant"]:
+                continue
+            d = s.get("description") or {}
+            L.append(f"| {e['equation']} | {s['state']} | {s['p_value']:.2g} | "
+                     f"{s['share']:.0%} | {d.get('phrase', '—')} | {d.get('shape_class', '—')}"
+                     f" | {d.get('region', s['region'])} |")
+    return L + [""]
+
+
 def render_loop(doc: dict, figures: dict) -> str:
     b, a = doc["before"], doc["after"]
     ub, ua = b.get("ude"), a.get("ude")
@@ -89,8 +108,11 @@ def render_loop(doc: dict, figures: dict) -> str:
                                                            doc["data"]["sources"]) + ".", ""]
     if eff:
         L += [f"**Effect added: {eff['name']}** (`{eff['key']}`, {eff['kind']}), "
-              f"{EQUATIONS[doc['system']][eff['equation']]} equation: {_coefs(eff)}"
-              + (f"; {_shape(eff)}" if eff.get("shape") is not None else "") + ".", ""]
+              f"{eff['equation']} equation: {_coefs(eff)}"
+              + (f"; {_shape(eff)}" if eff.get("shape") is not None else "") + ".", "",
+              f"It depends on {', '.join(eff.get('states') or ['—'])}: "
+              f"{eff.get('description', eff['name'])} (class: {eff.get('shape_class')}; "
+              f"acts in {eff.get('region')}).", ""]
         others = [d for d in doc["added"][1:]]
         if others:
             L += ["Also kept, in order: " + ", ".join(f"`{d['key']}`" for d in others)
@@ -124,6 +146,8 @@ def render_loop(doc: dict, figures: dict) -> str:
         L.append(f"| {s['step']} | {s.get('name') or s.get('candidate') or '—'} | "
                  f"{s.get('kind', '—')} | {'yes' if s['kept'] else 'no'} | {s['reason']} | "
                  f"{pct(m.get('branch_rms'))} | {m.get('missed', '—')} |")
+    if doc.get("location"):
+        L += location_section(doc["location"])
     L += ["", "## Candidates for the mechanistic model's residual", ""]
     if doc.get("explanation"):
         L += candidates_section(doc["explanation"], doc["system"])

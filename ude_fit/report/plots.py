@@ -313,3 +313,34 @@ def plot_residuals(path, explanation, *, parameter_label: str):
     """Write :func:`residual_figure` as a PNG; returns ``path``."""
     _save(residual_figure(explanation, parameter_label=parameter_label), path)
     return path
+
+
+def shapes_figure(location) -> Figure:
+    """The located shape functions: per equation (rows) and state (columns), the partial
+    residual on the samples, the penalised spline with its two-standard-error band, and
+    the named class's form where one was fitted: the picture a dynamicist reads."""
+    eqs = location.equations
+    n_st = max(len(e.shapes) for e in eqs)
+    fig = Figure(figsize=(2.9 * n_st, 2.5 * len(eqs) + 0.3), layout="constrained")
+    axes = fig.subplots(len(eqs), n_st, squeeze=False)
+    for i, e in enumerate(eqs):
+        for j, s in enumerate(sorted(e.shapes, key=lambda s: s.state)):
+            ax = axes[i, j]
+            ax.scatter(s.samples, s.partial, s=2, color="0.6", rasterized=True)
+            colour = "C3" if s.significant else "C0"
+            ax.fill_between(s.grid, s.value - 2 * s.band, s.value + 2 * s.band,
+                            color=colour, alpha=0.25, lw=0)
+            ax.plot(s.grid, s.value, color=colour, lw=1.5)
+            ax.set_xlabel(s.name)
+            tag = f"p = {s.p_value:.2g}" + (" (significant)" if s.significant else "")
+            ax.set_title(tag, fontsize=8, loc="left")
+            if j == 0:
+                ax.set_ylabel(f"{e.name}: shape (linear part removed)")
+            ax.grid(alpha=0.3)
+    return fig
+
+
+def plot_shapes(path, location):
+    """Write :func:`shapes_figure` as a PNG; returns ``path``."""
+    _save(shapes_figure(location), path)
+    return path

@@ -1,0 +1,72 @@
+"""`ude-fit loop` on aerofoil rigs started with effects of forms the catalogue does not list
+(rig plugins under tests/plugins/): the loop must locate the right equation and state and
+bring the branch error (missed points counted) to at most a third of the mechanistic
+model's. Each campaign: the rig's own true orbits held by its board at sigma = 0.02.
+
+These are slow (a campaign and a loop each, 5-10 minutes on 2 cores), so they are a measurement
+run by hand, not part of the suite: ``python3 -m pytest -q -s benchmarks/locate_cases.py``.
+The loop runs with the experimental ``--locate-shapes``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from tests.ude_fixtures import write_truth_campaign
+from ude_fit import cli
+
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
+
+PLUGINS = Path(__file__).resolve().parents[1] / "tests" / "plugins"
+AIRSPEEDS = (19.0, 20.0, 21.0, 22.0, 23.0, 24.0, 25.5)
+CASES = {
+    # plugin -> (equation, state it depends on)
+    "heave_stop": ("heave", "h"),
+    "heave_direction_damping": ("heave", "h_dot"),
+    "pitch_asymmetric": ("pitch", "alpha"),
+    "pitch_softening": ("pitch", "alpha"),
+}
+
+
+# measured 2026-11-24: located (pitch, alpha) but described as the catalogue's 5th/7th-order
+# pitch stiffness (within positive BIC evidence of the "beyond |d|" class, same parameter
+# count), which takes the branch error only from 32.5 % to 25.1 %
+KNOWN_SHORT = {"pitch_softening": "named as the catalogue's pitch_poly57; error 0.77 of before"}
+
+
+@pytest.fixture(scope="module", params=[
+    pytest.param(n, marks=pytest.mark.xfail(reason=KNOWN_SHORT[n], strict=False))
+    if n in KNOWN_SHORT else n for n in CASES])
+def looped(request, tmp_path_factory):
+    name = request.param
+    tmp = tmp_path_factory.mktemp(name)
+    path = tmp / f"{name}.h5"
+    write_truth_campaign(path, "flutter", airspeeds=AIRSPEEDS, sigma=0.02,
+                         plugin=f"{PLUGINS / (name + '.py')}:force", held_within=0.2)
+    out = tmp / "loop"
+    rc = cli.main(["loop", str(path), "--system", "flutter", "--locate-shapes", "--out", str(out),
+                   "--quiet"])
+    return name, rc, json.loads((out / "metrics.json").read_text()), out
+
+
+def test_located_equation_and_state_and_error_down_to_a_third(looped):
+    name, rc, m, out = looped
+    equation, state = CASES[name]
+    assert rc == 0
+    e = m["effect"]
+    assert e is not None, m["steps"]
+    before, after = (m[k]["branch_rms_with_missed"] for k in ("before", "after"))
+    print(f"{name}: {e['description']} ({e['key']}); branch RMS {100 * before:.2f} % -> "
+          f"{100 * after:.2f} %")
+    top = next(s for q in m["location"]["equations"] for s in q["shapes"]
+               if s["significant"] and q["equation"] == equation)
+    assert top["state"] == state
+    assert e["equation"] == equation and state in e["states"]
+    assert {"name", "terms", "coefficients", "uncertainty", "shape_class", "region"} <= set(e)
+    assert after <= before / 3
+    assert (out / "shapes.png").exists()
+    assert "Where the residual is" in (out / "report.md").read_text()
