@@ -170,8 +170,11 @@ def fit_backbone(V, A, stable=None) -> HopfBackbone | None:
 
 def backbone_of(ds) -> HopfBackbone | None:
     """The backbone of a dataset of self-excited orbits (None for forced data, where the
-    amplitude depends on the forcing, not on a growth rate)."""
+    amplitude depends on the forcing, not on a growth rate). Orbits of zero amplitude (rest
+    logged as a point) say nothing about the curve's shape and are left out of the fit."""
     if ds.system != "flutter":
         return None
-    return fit_backbone(ds.parameters(), ds.amplitudes(),
-                        [o.stable for o in ds.orbits])
+    A = ds.amplitudes()
+    keep = A > 0
+    return fit_backbone(ds.parameters()[keep], A[keep],
+                        [o.stable for o, k in zip(ds.orbits, keep) if k])
