@@ -53,6 +53,15 @@ def test_metrics_file_has_both_models_side_by_side(flutter_fit):
     assert m["inputs"][0]["sha256"] and m["version"] and m["command"].startswith("ude-fit fit")
 
 
+def test_backbone_reported_beside_the_models(flutter_fit, flutter_truth):
+    """The Hopf normal form fitted to the points alone: every point on it with its
+    stability, one fold, and the truth's Hopf point within its own uncertainty."""
+    bb = flutter_fit["metrics"]["backbone"]
+    assert bb["missed"] == 0 and bb["fold"] is not None
+    assert abs(bb["hopf"] - flutter_truth["hopf"]) < 3 * bb["hopf_std"]
+    assert "Backbone" in (flutter_fit["out"] / "report.md").read_text()
+
+
 def test_ude_branch_error_at_most_1_percent_and_below_mechanistic(flutter_fit):
     m = flutter_fit["metrics"]
     assert m["ude"]["missed"] == 0

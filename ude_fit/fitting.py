@@ -22,6 +22,7 @@ import jax
 import numpy as np
 
 from ._precision import require_float64
+from .analysis.backbone import backbone_of
 from .analysis.adequacy import data_scatter, fold_count, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
 from .data.estimates import estimate_from_data
@@ -98,6 +99,17 @@ def _relative_noise(ds: OrbitDataset) -> float | None:
     r = ds.noise()[:, 0] / ds.amplitudes()
     r = r[np.isfinite(r)]
     return float(np.median(r)) if r.size else None
+
+
+def backbone_metrics(ds: OrbitDataset) -> dict | None:
+    """The Hopf normal-form backbone fitted to the points (a third model of the data, beside
+    the mechanistic model and the UDE), with its branch errors; None where it does not
+    apply (forced data) or the points are too few."""
+    bb = backbone_of(ds)
+    if bb is None:
+        return None
+    m = bb.metrics(ds.parameters(), ds.amplitudes(), [o.stable for o in ds.orbits])
+    return {**bb.to_json(), **{k: m[k] for k in ("branch_rms", "branch_max", "missed")}}
 
 
 def _train_start(mech_model, data: TrainingData, opts: FitOptions, k: int, key, progress):
@@ -249,6 +261,7 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                                  "max_extra_folds_per_family": 1,
                                  "fold_required": fold_needed},
                    "records": [s.to_json() for s in starts]},
+        "backbone": backbone_metrics(ds),
         "ranges": ranges,
         "seconds": time.perf_counter() - t_start,
     }

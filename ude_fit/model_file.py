@@ -17,7 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .data.orbit import DataError
-from .models.corrections import MLPCorrection, PolynomialParamCorrection, Scaling
+from .models.corrections import (MLPCorrection, PolynomialParamCorrection,
+                                 RestFreeCorrection, Scaling)
 from .models.mechanistic import SYSTEMS, parameters_of
 from .models.refined import describe, refined
 from .models.ude import UDE
@@ -39,6 +40,9 @@ def _version() -> str:
 def _correction_header(c) -> dict | None:
     if c is None:
         return None
+    if isinstance(c, RestFreeCorrection):
+        return {"kind": "rest-free", "n_dof": int(c.n_dof),
+                "inner": _correction_header(c.inner)}
     if isinstance(c, MLPCorrection):
         lin = [l for l in c.mlp.layers]
         return {"kind": "mlp", "n_in": int(c.mlp.in_size), "n_out": int(c.mlp.out_size),
@@ -59,6 +63,8 @@ def _correction_header(c) -> dict | None:
 def _skeleton_correction(h: dict | None):
     if h is None:
         return None
+    if h["kind"] == "rest-free":
+        return RestFreeCorrection(_skeleton_correction(h["inner"]), h["n_dof"])
     if h["kind"] == "mlp":
         sc = Scaling(jnp.zeros(h["n_in"]), jnp.ones(h["n_in"]), jnp.ones(h["n_out"]))
         return MLPCorrection(h["n_in"], h["n_out"], sc, width=h["width"], depth=h["depth"],

@@ -98,6 +98,11 @@ def add_fit_arguments(p) -> None:
                    "in it (the airspeed enters quasi-steady aerodynamics as V and V^2)")
     p.add_argument("--param-degree", type=positive_int("--param-degree"), default=2,
                    metavar="D", help="--param-dependence polynomial: the degree (default 2)")
+    p.add_argument("--rest-free", action="store_true",
+                   help="aerofoil: the network's value and slope at rest are subtracted, so "
+                   "it cannot move the equilibrium or its linearisation; a damping term per "
+                   "coordinate, affine in the airspeed, carries the linear change (where "
+                   "the Hopf point lies)")
     p.add_argument("--reference-hopf", type=finite_float("--reference-hopf"), metavar="V",
                    help="known Hopf airspeed (m/s) for the error figures")
     p.add_argument("--reference-fold", type=finite_float("--reference-fold"), metavar="V",
@@ -118,5 +123,5 @@ def fit_options(args):
         reference_hopf=args.reference_hopf, reference_fold=args.reference_fold,
         train=TrainConfig(width=args.width, depth=args.depth, param_scale=args.param_scale,
                           param_dependence=args.param_dependence,
-                          param_degree=args.param_degree,
+                          param_degree=args.param_degree, rest_free=args.rest_free,
                           penalties=tuple(p for p in penalties if p.weight)))

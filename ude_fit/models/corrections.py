@@ -93,3 +93,48 @@ def feature_scaling(Z: np.ndarray, F: np.ndarray) -> Scaling:
     out = np.where(out > 0, out, 1.0)
     return Scaling(jnp.asarray(Z.mean(axis=0)), jnp.asarray(scale), jnp.asarray(out))
 
+
+
+class RestFreeCorrection(eqx.Module):
+    """A correction that cannot move the equilibrium at rest or change its linearisation
+    beyond a few explicit damping terms:
+
+        U(y; p) = N(y; p) - N(0; p) - J_y N(0; p) y - out_scale * (d0 + d1 s) * qd / qd_scale,
+
+    with N the inner network (MLPCorrection or PolynomialParamCorrection), s the standardised
+    parameter and (d0, d1) one pair per degree of freedom: damping added to each coordinate,
+    affine in the parameter. The network carries only the nonlinear part; where the
+    equilibrium loses stability (the Hopf point) is decided by the mechanistic model and the
+    two explicit terms per coordinate, which the orbits near the Hopf point identify, instead
+    of by the network's extrapolation to rest, where no orbit was measured.
+
+    Rest is y = 0: the mechanistic aerofoil's equilibrium (no force at rest), which the
+    correction therefore keeps.
+    """
+    inner: eqx.Module
+    damping: jax.Array            # (2, n_dof): d0, d1
+    n_dof: int = eqx.field(static=True)
+
+    def __init__(self, inner: eqx.Module, n_dof: int, damping=None):
+        self.inner = inner
+        self.n_dof = n_dof
+        self.damping = jnp.zeros((2, n_dof)) if damping is None else jnp.asarray(damping)
+
+    @property
+    def scaling(self) -> Scaling:
+        return self.inner.scaling
+
+    @property
+    def mlp(self) -> eqx.nn.MLP:
+        return self.inner.mlp
+
+    def __call__(self, z):
+        s = self.scaling
+        rest = z.at[:-1].set(0.0)
+        # one forward-mode pass: the network at rest and its derivative along y
+        f0, df = jax.jvp(self.inner, (rest,), (z.at[-1].set(0.0),))
+        n = self.n_dof
+        p = (z[-1] - s.z_mean[-1]) / s.z_scale[-1]
+        qd = z[n:2 * n] / s.z_scale[n:2 * n]
+        linear = s.out_scale * (self.damping[0] + self.damping[1] * p) * qd
+        return self.inner(z) - f0 - df - linear

@@ -14,6 +14,19 @@ def _ref(m: dict, key: str) -> str:
     return f"{e['reference']:.3f} ({e['reference_source']})"
 
 
+def _backbone(bb: dict | None, unit: str) -> list[str]:
+    """The Hopf normal-form backbone fitted to the points (ude_fit.analysis.backbone)."""
+    if bb is None:
+        return []
+    fold = ("no fold" if bb["fold"] is None else
+            f"fold {bb['fold']:.3f} ± {bb['fold_std']:.3f} {unit}")
+    return ["", f"Backbone (the Hopf normal form r' = r (m (V − V_H) + a r² + b r⁴) fitted to "
+            f"the points alone, one Hopf point and at most one fold by construction): Hopf "
+            f"{bb['hopf']:.3f} ± {bb['hopf_std']:.3f} {unit}, {fold}; branch amplitude error "
+            f"RMS {pct(bb['branch_rms'])}, max {pct(bb['branch_max'])}, "
+            f"{bb['missed']} missed."]
+
+
 def render(metrics: dict, figures: dict) -> str:
     """Markdown text from ``metrics`` (as written to metrics.json) and figure file names."""
     mech, ude = metrics["mechanistic"], metrics.get("ude")
@@ -53,6 +66,7 @@ def render(metrics: dict, figures: dict) -> str:
                          "to its Hopf point (traced from the measured orbits it passes near)"
                          + (f", with folds at {', '.join(f'{x:.3f}' for x in mm['isola_folds'])}"
                             if mm.get("isola_folds") else "") + ".")
+        L += _backbone(metrics.get("backbone"), unit)
     else:
         L += ["", "### Per forcing frequency", "",
               "| frequency (Hz) | mechanistic RMS | UDE RMS | mechanistic max | UDE max | "

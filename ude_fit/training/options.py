@@ -46,6 +46,9 @@ class TrainConfig:
     # coefficients; PolynomialParamCorrection)
     param_dependence: str = "input"
     param_degree: int = 2
+    # the network cannot move the equilibrium at rest or its linearisation; explicit damping
+    # terms carry the linear change (RestFreeCorrection; aerofoil only)
+    rest_free: bool = False
     penalties: tuple[Penalty, ...] = ()
 
     def __post_init__(self):
@@ -67,6 +70,8 @@ class TrainConfig:
         if self.param_dependence not in PARAM_DEPENDENCE:
             raise ValueError(f"param_dependence must be input or polynomial, not "
                              f"{self.param_dependence!r}")
+        if not isinstance(self.rest_free, bool):
+            raise ValueError(f"rest_free must be True or False, not {self.rest_free!r}")
         object.__setattr__(self, "penalties", tuple(self.penalties))
         kinds = [type(p) for p in self.penalties]
         for p in self.penalties:
@@ -170,8 +175,13 @@ class FitOptions:
         if not system_kind(self.system).autonomous and aero:
             raise ValueError("/".join(f"--{p.option}" for p in aero)
                              + " apply to --system flutter only")
+        if self.system != "flutter" and self.train.rest_free:
+            raise ValueError("--rest-free applies to --system flutter only (a forced "
+                             "system has no equilibrium at rest)")
         if self.approximator != "nn":
             nn_only = [f"--{p.option}" for p in active]
+            if self.train.rest_free:
+                nn_only.append("--rest-free")
             if self.train.param_scale != 1.0:
                 nn_only.append("--param-scale")
             if self.train.param_dependence != "input":

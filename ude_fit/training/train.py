@@ -28,7 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._precision import require_float64
-from ..models.corrections import MLPCorrection, PolynomialParamCorrection, feature_scaling
+from ..models.corrections import (MLPCorrection, PolynomialParamCorrection,
+                                  RestFreeCorrection, Scaling, feature_scaling)
 from ..models.flow import diffrax_samples, rk4_orbit
 from ..models.ude import UDE
 from .identify import TrainingData, residual_forces
@@ -38,9 +39,10 @@ from .penalties import penalty_sum, regularity_points
 
 
 def _trainable_spec(correction):
-    spec = jax.tree_util.tree_map(lambda _: False, correction)
-    return eqx.tree_at(lambda c: c.mlp, spec,
-                       replace=jax.tree_util.tree_map(eqx.is_inexact_array, correction.mlp))
+    """Every array of the correction is trained but its (fixed) input/output scaling."""
+    return jax.tree_util.tree_map(
+        lambda x: False if isinstance(x, Scaling) else eqx.is_inexact_array(x), correction,
+        is_leaf=lambda x: isinstance(x, Scaling))
 
 
 def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig):
@@ -49,11 +51,13 @@ def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig):
     if cfg.param_scale != 1.0:
         sc = eqx.tree_at(lambda s: s.z_scale, sc, sc.z_scale.at[-1].multiply(cfg.param_scale))
     if cfg.param_dependence == "polynomial":
-        return PolynomialParamCorrection(Z.shape[1], R.shape[1], sc, degree=cfg.param_degree,
-                                         width=cfg.width, depth=cfg.depth, key=key,
-                                         init_scale=cfg.init_scale)
-    return MLPCorrection(Z.shape[1], R.shape[1], sc, width=cfg.width,
-                         depth=cfg.depth, key=key, init_scale=cfg.init_scale)
+        inner = PolynomialParamCorrection(Z.shape[1], R.shape[1], sc, degree=cfg.param_degree,
+                                          width=cfg.width, depth=cfg.depth, key=key,
+                                          init_scale=cfg.init_scale)
+    else:
+        inner = MLPCorrection(Z.shape[1], R.shape[1], sc, width=cfg.width,
+                              depth=cfg.depth, key=key, init_scale=cfg.init_scale)
+    return RestFreeCorrection(inner, model.mech.n_dof) if cfg.rest_free else inner
 
 
 # ---------------------------------------------------------------------------------------
