@@ -22,7 +22,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from tests.ray_cluster import LocalRayCluster  # noqa: E402
+from tests.ray_cluster import LONG_AIRSPEEDS, LocalRayCluster  # noqa: E402
 
 FLUTTER = """[campaign]
 name = "{name}"
@@ -183,7 +183,9 @@ def main(work: Path) -> None:
     work.mkdir(parents=True, exist_ok=True)
     (work / "small.toml").write_text(FLUTTER.format(name="small", values="[18.5, 20.5, 22.3]"))
     (work / "one.toml").write_text(FLUTTER.format(name="one", values="[20.5]"))
-    (work / "four.toml").write_text(FLUTTER.format(name="four", values="[18.5, 19.5, 20.5, 22.3]"))
+    # long enough (10 airspeeds, ~20 points) that a Ctrl-C after its second point finds it
+    # still running on an idle machine (4 airspeeds finished before the stop reached it)
+    (work / "four.toml").write_text(FLUTTER.format(name="four", values=str(list(LONG_AIRSPEEDS))))
     (work / "osc23.toml").write_text(OSCILLATOR.format(name="osc23", freq=23.0))
     (work / "osc22.toml").write_text(OSCILLATOR.format(name="osc22", freq=22.5))
     (work / "burnt.py").write_text(BURNT_PLUGIN)
