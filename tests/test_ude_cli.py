@@ -25,7 +25,8 @@ NN_FLAGS = ["--training", "trajectory", "--mechanistic", "periodic", "--starts",
             "--energy-rising", "2.5", "--rest-stability", "3.5",
             "--equilibrium-penalty", "4.5", "--smoothness-penalty", "5.5",
             "--weight-decay", "6.5", "--param-scale", "2", "--param-dependence", "polynomial",
-            "--param-degree", "3", "--reference-hopf", "24.1", "--reference-fold", "20.4"]
+            "--param-degree", "3", "--reference-hopf", "24.1", "--reference-fold", "20.4",
+            "--rest-free"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 
 
