@@ -13,7 +13,7 @@ from pathlib import Path
 
 from rig_sim.device import register_map as M
 
-from .plans.autonomous import DEFAULTS as FLUTTER_DEFAULTS, ROOT_METHODS
+from .plans.options import OPTIONS, typed
 
 
 class CampaignError(ValueError):
@@ -26,20 +26,6 @@ _RIG = {"time_scale": float, "lockstep": bool, "noise": float, "effects": list, 
         "seed": int}
 _LOOP = {"rate_hz": float, "lockstep_slice_s": float, "reconnect_s": float, "watchdog_s": float,
          "max_settle_rig_s": float}
-
-# cbc keys that are rig settings: checked against the register map's ranges
-_CBC_REGISTER = {"kp": "kp", "kd": "kd", "navg": "navg", "clamp": "clamp", "trip": "trip",
-                 "frequency_guess": "frequency"}
-
-_CBC_CHOICES = {"root_method": ROOT_METHODS}
-
-
-def _oscillator_defaults() -> dict:
-    try:
-        from .plans.forced import DEFAULTS
-        return DEFAULTS
-    except ImportError:           # the forced plan is optional until it lands
-        return {}
 
 
 def load_campaign(path: str | Path) -> tuple[dict, str]:
@@ -58,19 +44,10 @@ def load_campaign(path: str | Path) -> tuple[dict, str]:
 
 
 def _type(name: str, field: str, value, kind) -> object:
-    if kind is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise CampaignError(f"{name}: {field} = {value!r}: expected a number")
-        if not math.isfinite(value):
-            raise CampaignError(f"{name}: {field} = {value!r}: not a finite number")
-        return float(value)
-    if kind is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise CampaignError(f"{name}: {field} = {value!r}: expected an integer")
-        return value
-    if not isinstance(value, kind):
-        raise CampaignError(f"{name}: {field} = {value!r}: expected {kind.__name__}")
-    return value
+    try:
+        return typed(field, value, kind)
+    except ValueError as exc:
+        raise CampaignError(f"{name}: {exc}") from None
 
 
 def _section(name: str, raw: dict, key: str, schema: dict) -> dict:
@@ -116,6 +93,33 @@ def _in_range(name: str, field: str, value: float, register: str, rig: str) -> N
         raise CampaignError(f"{name}: {field} = {value:g}: outside {lo:g}..{hi:g} {reg.unit} ({register})")
 
 
+def _check_embedded_rig(name: str, rig: str, section: dict) -> None:
+    """[rig] describes the embedded rig, which is `rig-sim serve` itself: its effects and
+    plugin are checked against rig_sim's own catalogue now, not when it starts. (The
+    controller imports nothing else of rig_sim but the register map.)"""
+    from rig_sim.physics.effects import EffectError, parse_effects, plugin_source
+
+    effects = section.get("effects", [])
+    for i, spec in enumerate(effects):
+        if not isinstance(spec, str):
+            raise CampaignError(f'{name}: rig.effects[{i}] = {spec!r}: expected "NAME=VALUE"')
+        try:
+            parse_effects(rig, [spec])
+        except EffectError as exc:      # its message names the CLI option: keep the reason
+            raise CampaignError(f"{name}: rig.effects[{i}] = {spec!r}: "
+                                f"{str(exc).split(': ', 1)[-1]}") from None
+    try:
+        parse_effects(rig, effects)     # together: an effect given twice
+    except EffectError as exc:
+        raise CampaignError(f"{name}: rig.effects: {str(exc).removeprefix('--effect ')}") from None
+    if "plugin" in section:
+        try:
+            plugin_source(section["plugin"])
+        except EffectError as exc:
+            raise CampaignError(f"{name}: rig.plugin = {section['plugin']!r}: "
+                                f"{str(exc).split(': ', 1)[-1]}") from None
+
+
 def validate(raw: dict, name: str = "campaign") -> dict:
     for k in raw:
         if k not in _TOP:
@@ -130,6 +134,7 @@ def validate(raw: dict, name: str = "campaign") -> dict:
         raise CampaignError(f"{name}: rig.time_scale must be > 0")
     if cfg["rig"].get("noise", 0.0) < 0:
         raise CampaignError(f"{name}: rig.noise must be >= 0")
+    _check_embedded_rig(name, rig, cfg["rig"])
     for k in ("rate_hz", "lockstep_slice_s", "reconnect_s", "watchdog_s", "max_settle_rig_s"):
         if k in cfg["loop"] and cfg["loop"][k] <= 0:
             raise CampaignError(f"{name}: loop.{k} must be > 0")
@@ -138,31 +143,13 @@ def validate(raw: dict, name: str = "campaign") -> dict:
     if "watchdog_s" in cfg["loop"]:
         _in_range(name, "loop.watchdog_s", cfg["loop"]["watchdog_s"], "watchdog_timeout", rig)
 
-    defaults = FLUTTER_DEFAULTS if rig == "flutter" else _oscillator_defaults()
     cbc = raw.get("cbc", {})
     if not isinstance(cbc, dict):
         raise CampaignError(f"{name}: [cbc] must be a table")
-    for k, v in cbc.items():
-        if defaults and k not in defaults:
-            raise CampaignError(f"{name}: cbc.{k}: unknown field for the {rig} plan "
-                                f"(known: {', '.join(sorted(defaults))})")
-        d = defaults.get(k)
-        if isinstance(d, str):
-            _type(name, f"cbc.{k}", v, str)
-            choices = _CBC_CHOICES.get(k)
-            if choices and v not in choices:
-                raise CampaignError(f"{name}: cbc.{k} = {v!r}: must be one of "
-                                    + ", ".join(f'"{c}"' for c in choices))
-        elif isinstance(d, bool):
-            _type(name, f"cbc.{k}", v, bool)
-        elif isinstance(d, int):
-            _type(name, f"cbc.{k}", v, int)
-            if v < 0:
-                raise CampaignError(f"{name}: cbc.{k} = {v}: must be >= 0")
-        elif isinstance(d, float) or d is None:
-            _type(name, f"cbc.{k}", v, float)
-        if k in _CBC_REGISTER:
-            _in_range(name, f"cbc.{k}", float(v), _CBC_REGISTER[k], rig)
+    try:
+        OPTIONS[rig].from_table(cbc)      # the plan's typed options check every field
+    except ValueError as exc:
+        raise CampaignError(f"{name}: {exc}") from None
     cfg["cbc"] = dict(cbc)
 
     if rig == "flutter":

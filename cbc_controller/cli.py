@@ -4,15 +4,23 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
-import signal
-import subprocess
 import sys
-import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 from . import __version__
+
+
+def _positive_float(text: str) -> float:
+    """argparse type: a finite number > 0 (a time scale of 0 is not "the default")."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number")
+    return value
 
 
 class _Parser(argparse.ArgumentParser):
@@ -32,7 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", metavar="FILE.h5", help="campaign file to write (default: runs/<name>.h5)")
     r.add_argument("--resume", metavar="FILE.h5", help="continue a campaign that was interrupted")
     clock = r.add_mutually_exclusive_group()
-    clock.add_argument("--time-scale", type=float, metavar="K", help="embedded rig: K x real time")
+    clock.add_argument("--time-scale", type=_positive_float, metavar="K",
+                       help="embedded rig: K x real time (K > 0)")
     clock.add_argument("--lockstep", action="store_true", help="embedded rig: lockstep (fastest)")
     r.add_argument("--quiet", action="store_true", help="no progress on the terminal")
     idn = sub.add_parser("identify", help="read a rig's device identification (exit 0 if it "
@@ -57,111 +66,10 @@ def _fail(message: str, code: int = 2) -> int:
     return code
 
 
-# ------------------------------------------------------------------ embedded rig --------
-def _die_with_parent() -> None:
-    """Linux: the embedded rig gets SIGTERM when the controller dies, even by SIGKILL."""
-    try:
-        import ctypes
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
-    except OSError:
-        pass
-
-
-class EmbeddedRig:
-    """A `rig-sim serve` process on a free loopback port, stopped at the end."""
-
-    def __init__(self, config: dict, time_scale: float | None, lockstep: bool):
-        rig = config["rig"]
-        args = [sys.executable, "-m", "rig_sim.cli", "serve", "--rig", config["campaign"]["rig"],
-                "--host", "127.0.0.1", "--port", "0",
-                "--seed", str(rig.get("seed", config["campaign"].get("seed", 0))),
-                "--noise", str(rig.get("noise", 0.0))]
-        if lockstep or (time_scale is None and rig.get("lockstep", False)):
-            args.append("--lockstep")
-        else:
-            args += ["--time-scale", str(time_scale or rig.get("time_scale", 20.0))]
-        if rig.get("effects"):
-            args += ["--effect", *rig["effects"]]
-        if rig.get("plugin"):
-            args += ["--effect-plugin", rig["plugin"]]
-        self.args = args
-        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True, start_new_session=True,
-                                     preexec_fn=_die_with_parent)
-        line = self.proc.stdout.readline()
-        if not line:
-            err = self.proc.stderr.read().strip().splitlines()
-            raise RuntimeError(f"the embedded rig did not start: {err[-1] if err else 'no output'}")
-        info = json.loads(line)
-        self.url = info["endpoints"][0]
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-
-
-# ------------------------------------------------------------------ progress ------------
-class Progress:
-    """Points done, the latest point, rig time and an ETA on one terminal line."""
-
-    def __init__(self, total_tasks: int, stream=sys.stderr):
-        self.total = max(total_tasks, 1)
-        self.stream = stream
-        self.t0 = time.time()
-        self.points = 0
-        self.tasks_done: set = set()
-        self.stable = self.unstable = 0
-
-    def __call__(self, kind: str, doc: dict) -> None:
-        if kind == "point":
-            self.points += 1
-            self.stable += bool(doc["stable"])
-            self.unstable += not doc["stable"]
-            self.tasks_done.add(doc["key"].split("/")[0])
-            el = time.time() - self.t0
-            frac = len(self.tasks_done) / self.total
-            eta = el / frac - el if frac > 0 else float("nan")
-            res = doc["extra"].get("final_error")     # the aerofoil's root residual
-            self.stream.write(
-                f"\r[{self.points} points: {self.stable} stable, {self.unstable} unstable] "
-                f"{doc['key']}: A = {doc['amplitude'] * 1e3:.3f} mm, "
-                f"{'stable' if doc['stable'] else 'unstable'}"
-                + (f", residual {res:.1e} m" if res is not None else "")
-                + f" | elapsed {el:.0f} s, ETA {eta:.0f} s   ")
-            self.stream.flush()
-        elif kind in ("fault", "link", "note"):
-            self.stream.write(f"\n{kind}: {json.dumps(doc, default=str)}\n")
-            self.stream.flush()
-        elif kind == "stop":
-            self.stream.write(f"\ncampaign {doc['reason']}: {self.points} points "
-                              f"({self.stable} stable, {self.unstable} unstable) in "
-                              f"{time.time() - self.t0:.0f} s\n")
-            self.stream.flush()
-
-
-# ------------------------------------------------------------------ run ----------------
-def _versions() -> dict:
-    from importlib.metadata import PackageNotFoundError, version
-    out = {"virtual-cbc-lab": __version__}
-    for pkg in ("numpy", "pymodbus", "h5py"):
-        try:
-            out[pkg] = version(pkg)
-        except PackageNotFoundError:
-            pass
-    return out
-
-
 def _run(args) -> int:
     from .campaign import CampaignError, load_campaign, validate
-    from .client import RigClient, RigError
-    from .engine import CampaignAbort, Engine, LoopOptions
-    from .log import CampaignFileError, CampaignWriter, read_campaign
-    from .messages import PlanContext
-    from .plans import plan_for
+    from .log import CampaignFileError, read_campaign
+    from .run import RunError, run_campaign
 
     # 1. everything the user gave is checked before anything touches a rig
     try:
@@ -186,63 +94,15 @@ def _run(args) -> int:
             done, prev_points = set(), []
     except (CampaignError, CampaignFileError) as exc:
         return _fail(str(exc))
-
-    loop = LoopOptions(**{k: v for k, v in config["loop"].items() if k in LoopOptions.__dataclass_fields__})
-    rig_url = args.rig
-    embedded = None
+    # 2. the run
     try:
-        if rig_url is None:
-            embedded = EmbeddedRig(config, args.time_scale, args.lockstep)
-            rig_url = embedded.url
-        try:
-            client = RigClient(rig_url, timeout=2.0, retries=1)
-        except ValueError as exc:
-            return _fail(str(exc))
-        subscribers = []
-        if not args.quiet:
-            tasks = config["parameter"]["values"] if config["campaign"]["rig"] == "flutter" \
-                else config["frequencies"]
-            subscribers.append(Progress(len(tasks)))
-        out.parent.mkdir(parents=True, exist_ok=True)
-        writer = CampaignWriter(str(out), resume=bool(args.resume))
-        engine = Engine(client, loop, [writer, *subscribers])
-        try:
-            identity = engine.start()
-        except RigError as exc:
-            writer.close() if hasattr(writer, "close") else None
-            if not args.resume and out.exists():
-                out.unlink()
-            return _fail(f"the rig at {rig_url} does not answer ({exc})", 1)
-        kind = "flutter" if identity["rig_kind"] == 0 else "oscillator"
-        if kind != config["campaign"]["rig"]:
-            engine.close()
-            return _fail(f"the campaign is for the {config['campaign']['rig']} rig but {rig_url} "
-                         f"is a {kind} rig ({identity['model']})")
-        engine.emit("start", {
-            "campaign": config, "campaign_toml": text, "identity": identity,
-            "versions": _versions(), "rig_url": rig_url,
-            "started": datetime.now(timezone.utc).isoformat(), "command": sys.argv,
-            "seed": config["campaign"].get("seed", 0)})
-        reason = "completed"
-        try:
-            reason = engine.run(plan_for(config), PlanContext(config, identity, done, prev_points))
-        except CampaignAbort as exc:
-            reason = f"aborted: {exc}"
-        except KeyboardInterrupt:
-            reason = "interrupted"
-        finally:
-            engine.emit("stop", {"reason": reason, "ended": datetime.now(timezone.utc).isoformat(),
-                                 "loop": engine.stats.summary()})
-            if hasattr(writer, "close"):
-                writer.close()
-            engine.close()
-        print(json.dumps({"file": str(out), "reason": reason}))
-        return 0 if reason == "completed" else 1
-    except RuntimeError as exc:
-        return _fail(str(exc), 1)
-    finally:
-        if embedded is not None:
-            embedded.stop()
+        reason = run_campaign(config, text, out, rig_url=args.rig, time_scale=args.time_scale,
+                              lockstep=args.lockstep, resume=bool(args.resume), done=done,
+                              previous=prev_points, progress=not args.quiet)
+    except RunError as exc:
+        return _fail(str(exc), exc.code)
+    print(json.dumps({"file": str(out), "reason": reason}))
+    return 0 if reason == "completed" else 1
 
 
 def _identify(args) -> int:

@@ -11,8 +11,9 @@ then DIR/report.md and DIR/metrics.json with the headline figures. These are the
 commands that docker-compose.yml runs as services. Ctrl-C stops the child that is running
 and the rig; what was logged stays, and the same command again resumes the campaign.
 
-The controller may not import `rig_sim` beyond the register map, so the rig and the fit
-are reached only through their command lines.
+The controller may not import `rig_sim` beyond the register map (and the effect catalogue,
+to check a campaign's embedded rig), so the rig and the fit are reached only through their
+command lines.
 """
 
 from __future__ import annotations

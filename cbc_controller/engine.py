@@ -12,7 +12,6 @@ every setting it had written, and throws `RigRestarted` into the plan.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -21,7 +20,7 @@ import numpy as np
 from rig_sim.device import register_map as M
 
 from .client import RigClient, RigError
-from .messages import (Arm, Configure, Disarm, Emit, Estimate, PlanContext, RigFault,
+from .messages import (Arm, Configure, Disarm, Emit, Estimate, PlanContext, Reseed, RigFault,
                        RigRestarted, Settle)
 
 FAULT_BIT = 1 << M.STATUS_BITS["fault"]
@@ -206,6 +205,12 @@ class Engine:
             self._call(lambda: self.rig.write(command=2))
             self.armed = False
             return None
+        if isinstance(msg, Reseed):
+            if self.lockstep:
+                self._call(lambda: self.rig.write(noise_seed=msg.seed))
+                self.armed = False
+                self._config_periods = self._call(lambda: self.rig.get("periods"))
+            return None
         if isinstance(msg, Settle):
             return self._settle(msg)
         if isinstance(msg, Emit):
@@ -277,8 +282,3 @@ class Engine:
                 result = self.execute(msg)
             except (RigFault, RigRestarted) as e:
                 exc = e
-
-
-def amplitude(coef) -> float:
-    """First-harmonic amplitude from the 15 coefficients (a0, a1..a7, b1..b7)."""
-    return float(math.hypot(coef[1], coef[1 + M.NHARM]))

@@ -38,6 +38,16 @@ class Settle:
 
 
 @dataclass(frozen=True)
+class Reseed:
+    """Start a reproducible segment of the campaign: on a lockstep rig the simulation restarts
+    from rest, disarmed, its noise streams seeded from `seed` (the rig's `noise_seed`), so
+    what follows depends only on the seed and the plan, not on what the rig did before (a
+    resumed campaign measures the same numbers as one never interrupted). Settings stay. A
+    rig running in real time is a physical experiment: there nothing happens."""
+    seed: int
+
+
+@dataclass(frozen=True)
 class Emit:
     """Publish a document (a collected point, a note) to the subscribers."""
     kind: str

@@ -257,7 +257,7 @@ Stable orbits solid, unstable dashed, folds as open circles.
 
 ## How the truth is computed
 
-`rig_sim/physics/truth.py`: shooting on the compiled right-hand sides (fixed-step RK4,
+`rig_sim/physics/truth/`: shooting on the compiled right-hand sides (fixed-step RK4,
 {n_fl} steps per period for the aerofoil and {n_os} for the oscillator; halving the step
 changes amplitudes and fold locations by less than 1e-8 relative), Jacobians and monodromy
 matrices by central differences, pseudo-arclength continuation in scaled unknowns, Floquet

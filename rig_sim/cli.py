@@ -48,6 +48,14 @@ def _port(text: str) -> int:
     return v
 
 
+def _unit(text: str) -> int:
+    from .device.addressing import check_unit
+    try:
+        return check_unit(int(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a unit id in 1..247") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="rig-sim", description="Virtual CBC lab rigs as Modbus devices.")
     p.add_argument("--version", action="version", version=f"rig-sim {__version__}")
@@ -61,6 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-tcp", action="store_true", help="serve only on --serial")
     s.add_argument("--serial", metavar="PORT", help="also serve Modbus RTU on this serial port (e.g. a socat pty)")
     s.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    s.add_argument("--unit", type=_unit, default=1, metavar="N",
+                   help="Modbus unit id (slave address) 1..247 (default 1); see docs/protocol.md")
     clock = s.add_mutually_exclusive_group()
     clock.add_argument("--time-scale", type=_positive_float, default=1.0, metavar="K",
                        help="run K times faster than real time (default 1)")
@@ -99,7 +109,8 @@ def _serve(args) -> int:
     try:
         board = Board(options)
         service = RigService(board, pacing, host=None if args.no_tcp else args.host,
-                             port=args.port, serial=args.serial, baudrate=args.baud)
+                             port=args.port, serial=args.serial, baudrate=args.baud,
+                             unit=args.unit)
         service.check()
     except (SettingError, EffectError, ServiceError) as exc:
         print(f"rig-sim: error: {exc}", file=sys.stderr)
@@ -124,7 +135,7 @@ def _serve(args) -> int:
             where.append(f"serial://{service.serial}")
         clock = "lockstep" if args.lockstep else f"time-scale {args.time_scale:g}"
         print(json.dumps({"event": "serving", "rig": args.rig, "model": board.spec.model,
-                          "endpoints": where, "clock": clock, "noise": args.noise,
+                          "endpoints": where, "unit": args.unit, "clock": clock, "noise": args.noise,
                           "seed": args.seed, "version": __version__}), flush=True)
         try:
             while not stop.is_set():

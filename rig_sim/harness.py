@@ -8,6 +8,7 @@ socat, one end for the rig's `--serial`, the other for a Modbus RTU client.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -20,13 +21,17 @@ from pathlib import Path
 class RigProcess:
     """`rig-sim serve ARGS...` as a subprocess; ready (endpoints known) on return."""
 
-    def __init__(self, *args: str, cwd: str | Path | None = None):
+    def __init__(self, *args: str, cwd: str | Path | None = None, stderr_file: str | Path | None = None):
+        """`stderr_file`: where the service's log goes (a pipe nobody reads would fill
+        up and stall a `--verbose` service); by default a pipe, read on failure."""
         self.args = [sys.executable, "-m", "rig_sim.cli", "serve", *args]
-        self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True, cwd=cwd)
+        self.stderr_file = Path(stderr_file) if stderr_file is not None else None
+        with (open(self.stderr_file, "w") if self.stderr_file else contextlib.nullcontext(subprocess.PIPE)) as err:
+            self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=err, text=True, cwd=cwd)
         line = self.proc.stdout.readline()
         if not line:
-            raise RuntimeError(f"rig-sim did not start: {self.proc.stderr.read().strip()}")
+            self.proc.wait()
+            raise RuntimeError(f"rig-sim did not start: {self.stderr().strip()}")
         self.info = json.loads(line)
         self.endpoints = self.info["endpoints"]
         self.url = self.endpoints[0]
@@ -34,6 +39,12 @@ class RigProcess:
     @property
     def port(self) -> int:
         return int(self.url.rsplit(":", 1)[1])
+
+    def stderr(self) -> str:
+        """The service's log so far (all of it once it has stopped)."""
+        if self.stderr_file is not None:
+            return self.stderr_file.read_text()
+        return self.proc.stderr.read() if self.proc.poll() is not None else ""
 
     def alive(self) -> bool:
         return self.proc.poll() is None

@@ -18,10 +18,10 @@ def rig_process():
     """Factory: start rig-sim with the given CLI args (always --port 0 unless given)."""
     started: list[RigProcess] = []
 
-    def start(*args: str) -> RigProcess:
+    def start(*args: str, stderr_file=None) -> RigProcess:
         if "--port" not in args and "--no-tcp" not in args:
             args = (*args, "--port", "0")
-        p = RigProcess(*args, cwd=REPO)
+        p = RigProcess(*args, cwd=REPO, stderr_file=stderr_file)
         started.append(p)
         return p
 

@@ -20,9 +20,8 @@ import h5py
 import numpy as np
 import pytest
 
-from cbc_controller import log
-from cbc_controller.log import (CampaignFileError, CampaignWriter, completed_keys, read_campaign,
-                                read_timeseries)
+from cbc_controller.log import (FORMAT_VERSION, CampaignFileError, CampaignWriter, completed_keys,
+                                journal, read_campaign, read_timeseries, writer)
 from cbc_controller.report import inspect_json, inspect_text, plot_campaign
 
 REPO = Path(__file__).resolve().parents[1]
@@ -133,7 +132,7 @@ def test_round_trip_every_field(tmp_path):
 
     c = read_campaign(path, timeseries=True)
     sd = start_doc()
-    assert c.rig == "flutter" and c.format_version == log.FORMAT_VERSION and c.incomplete == 0
+    assert c.rig == "flutter" and c.format_version == FORMAT_VERSION and c.incomplete == 0
     for k in ("campaign", "campaign_toml", "identity", "versions", "rig_url", "started",
               "command", "seed"):
         assert c.metadata[k] == sd[k], k
@@ -256,12 +255,12 @@ def test_complete_is_set_last_and_a_failed_point_leaves_no_trace(tmp_path, monke
     w = CampaignWriter(path)
     w("start", start_doc())
     seen = []
-    real = log._write_history
+    real = writer._write_history
 
     def spy(group, rows):                            # midway through writing a point
         seen.append(bool(group.attrs["complete"]))
         real(group, rows)
-    monkeypatch.setattr(log, "_write_history", spy)
+    monkeypatch.setattr(writer, "_write_history", spy)
     w("point", point_doc(0))
     assert seen == [False]
     bad = point_doc(1)
@@ -303,8 +302,7 @@ WRITER = textwrap.dedent("""
     import os, signal, sys
     import numpy as np
     sys.path.insert(0, {repo!r})
-    from cbc_controller import log
-    from cbc_controller.log import CampaignWriter, completed_keys
+    from cbc_controller.log import CampaignWriter, completed_keys, journal
 
     path, n = sys.argv[1], int(sys.argv[2])
     crash = sys.argv[3] if len(sys.argv) > 3 else ""
@@ -313,7 +311,7 @@ WRITER = textwrap.dedent("""
     if crash:                                # fault injection: die inside a commit
         stage, at_point = crash.split(":")
         state = {{"pages": 0}}
-        apply_page, unlink = log._JournaledFile._apply_page, os.unlink
+        apply_page, unlink = journal._JournaledFile._apply_page, os.unlink
         def killing_apply(self, offset, data):
             if state.get("armed"):
                 if stage == "before-pages" or (stage == "mid-pages" and state["pages"] == 1):
@@ -324,8 +322,8 @@ WRITER = textwrap.dedent("""
             if state.get("armed") and stage == "before-unlink" and str(p).endswith("-journal"):
                 os.kill(os.getpid(), signal.SIGKILL)
             unlink(p, *a, **k)
-        log._JournaledFile._apply_page = killing_apply
-        log.os.unlink = killing_unlink
+        journal._JournaledFile._apply_page = killing_apply
+        journal.os.unlink = killing_unlink
     w = CampaignWriter(path, resume=resume, durable=False)
     w("start", {{"campaign": {{}}, "campaign_toml": "", "identity": {{"rig_kind": 1}},
                 "versions": {{}}, "rig_url": "", "started": "t", "command": [], "seed": 0}})
@@ -447,7 +445,7 @@ def test_journal_semantics_against_a_model(tmp_path):
     applying a commit) on the journaled file: reopening always yields the last commit."""
     rnd = random.Random(5)
     path = str(tmp_path / "raw.bin")
-    jf = log._JournaledFile(path, create=True, durable=False)
+    jf = journal._JournaledFile(path, create=True, durable=False)
     model, committed = bytearray(), b""
     crashes = 0
     for step in range(400):
@@ -476,7 +474,7 @@ def test_journal_semantics_against_a_model(tmp_path):
                 with pytest.raises(KeyboardInterrupt):
                     jf.commit()
             jf.close()
-            jf = log._JournaledFile(path, create=False, durable=False)
+            jf = journal._JournaledFile(path, create=False, durable=False)
             model = bytearray(committed)
             crashes += 1
         jf.seek(0)

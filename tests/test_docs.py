@@ -41,3 +41,91 @@ def test_readme_links_point_at_files_that_exist():
     tutorial = (REPO / "docs" / "tutorial.md").read_text()
     for img in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", tutorial):
         assert (REPO / "docs" / img).exists(), img
+
+
+# --- relative links in the markdown pages resolve ---------------------------------------------
+
+FENCE = re.compile(r"^(```|~~~)")
+LINK = re.compile(r"!?\[(?:[^\]\[]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
+EXTERNAL = re.compile(r"^[a-z][a-z0-9+.-]*:", re.I)       # http:, https:, mailto:, ...
+
+
+def _prose_lines(text: str):
+    """The page's lines outside fenced code blocks, inline code removed: a link or heading
+    shown as code is not one."""
+    fenced = False
+    for line in text.splitlines():
+        if FENCE.match(line.lstrip()):
+            fenced = not fenced
+            continue
+        if not fenced:
+            yield re.sub(r"`[^`]*`", "", line)
+
+
+def _anchors(page: Path) -> set[str]:
+    """The anchors GitHub gives a page's headings: lower case, punctuation dropped, spaces to
+    hyphens, a repeated heading numbered -1, -2, ..."""
+    seen: dict[str, int] = {}
+    anchors = set()
+    fenced = False
+    for line in page.read_text().splitlines():
+        if FENCE.match(line.lstrip()):
+            fenced = not fenced
+            continue
+        m = None if fenced else re.match(r"#{1,6}\s+(.*?)\s*#*\s*$", line)
+        if not m:
+            continue
+        slug = re.sub(r"[^\w\- ]", "", m.group(1).lower()).replace(" ", "-")
+        n = seen.get(slug, 0)
+        seen[slug] = n + 1
+        anchors.add(slug if n == 0 else f"{slug}-{n}")
+    return anchors
+
+
+def broken_links(page: Path) -> list[str]:
+    """Every relative link or image of a markdown page whose file, or heading anchor in a
+    markdown file, does not exist."""
+    broken = []
+    for line in _prose_lines(page.read_text()):
+        for target in LINK.findall(line):
+            if EXTERNAL.match(target):
+                continue
+            path, _, anchor = target.partition("#")
+            dest = (page.parent / path).resolve() if path else page
+            if not dest.exists():
+                broken.append(f"{page.name}: {target} (no such file)")
+            elif anchor and dest.suffix == ".md" and anchor not in _anchors(dest):
+                broken.append(f"{page.name}: {target} (no such heading)")
+    return broken
+
+
+def _pages() -> list[Path]:
+    return [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]
+
+
+def test_every_relative_link_in_the_markdown_pages_resolves():
+    pages = _pages()
+    assert len(pages) >= 10
+    broken = [b for page in pages for b in broken_links(page)]
+    assert not broken, "broken links:\n" + "\n".join(broken)
+
+
+def test_the_link_check_finds_missing_files_and_headings(tmp_path):
+    (tmp_path / "other.md").write_text("# Other page\n\n## The `cli` options, in full\n\n## Same\n\n## Same\n")
+    (tmp_path / "pic.png").write_bytes(b"")
+    page = tmp_path / "page.md"
+    page.write_text(
+        "# Page\n\n"
+        "[ok](other.md) [ok](other.md#the-cli-options-in-full) [ok](other.md#same-1) "
+        "![ok](pic.png) [ok](#page) [ok](https://example.org/nowhere.md)\n"
+        "`[code, not a link](missing.md)`\n"
+        "```sh\n[fenced, not a link](missing.md)\n# not a heading\n```\n"
+        "[bad](missing.md) [bad](other.md#nowhere) [bad](other.md#same-2) "
+        "![bad](gone.png) [bad](#not-a-heading)\n")
+    assert broken_links(page) == [
+        "page.md: missing.md (no such file)",
+        "page.md: other.md#nowhere (no such heading)",
+        "page.md: other.md#same-2 (no such heading)",
+        "page.md: gone.png (no such file)",
+        "page.md: #not-a-heading (no such heading)",
+    ]

@@ -1,7 +1,11 @@
-"""CBC methods as plans: generators of engine messages (see messages.py)."""
+"""CBC methods as plans: generators of engine messages (see messages.py).
+
+Each plan takes its typed options (`options.py`, built from the campaign's ``[cbc]`` table),
+shares its common steps with the others (`_steps.py`) and never imports the engine."""
 
 from .autonomous import flutter_plan
 from .forced import oscillator_plan
+from .options import FlutterOptions, ForcedOptions, PlanOptions, plan_options
 
 
 def plan_for(config: dict):
@@ -11,4 +15,5 @@ def plan_for(config: dict):
     return oscillator_plan(config)
 
 
-__all__ = ["flutter_plan", "oscillator_plan", "plan_for"]
+__all__ = ["FlutterOptions", "ForcedOptions", "PlanOptions", "flutter_plan", "oscillator_plan",
+           "plan_for", "plan_options"]

@@ -22,6 +22,11 @@ both sides of the current root and fitting a line through all the blocks near it
 is then the regression's fixed point (A1 = A* where e = 0), which averages every
 block, rather than the last block alone.
 
+Each airspeed is a segment: it starts with the rig at rest and its noise streams seeded
+from the campaign's seed and the airspeed (`Reseed`, lockstep rigs). An airspeed with
+both its cycles in the file is skipped on resume; any other is measured again from its
+start, emitting the cycles the file lacks: the same numbers as without the interruption.
+
 Stability of a root from the sign of de/dA1*: the control is proportional in the
 amplitude error, so where the open-loop amplitude would decay (inside the
 unstable cycle and outside the stable one) the controlled response falls short
@@ -36,27 +41,16 @@ import time
 
 import numpy as np
 
-from ..engine import amplitude
+from ..harmonics import amplitude
 from ..messages import Arm, Configure, Disarm, Emit, RigFault, RigRestarted, Settle
+from ._steps import PointLog, configure_and_settle, point_doc, start_segment
+from .bracket import Bracket
+from .options import FlutterOptions
 from .regression_root import pooled_sd, root_from_blocks
 
 STABILITY_METHOD = "sign of de/dA* at the root (e = target amplitude - response amplitude)"
 
-DEFAULTS = {
-    "kp": 200.0, "kd": 60.0, "navg": 4, "transient_periods": 1, "frequency_guess": 2.4,
-    "amplitude_min": 0.006, "amplitude_max": 0.14, "amplitude_step": 0.012,
-    "tolerance_abs": 2e-5, "tolerance_rel": 1e-3, "frequency_tolerance": 0.002,
-    "dc_tolerance": 5e-5, "max_picard": 8, "max_refine": 16, "variance_rel": 5e-3,
-    "max_gate_polls": 4, "record_s": 2.0, "clamp": 300.0, "trip": 0.2,
-    "picard_harmonics": False, "max_faults": 3, "quench_periods": 6, "max_quench": 8,
-    # under process noise: "regression" (see the module's docstring)
-    # bracket each root around its prediction from the airspeeds before (+- warm_width
-    # of it) before falling back to the scan from a small amplitude
-    "warm_start": True, "warm_width": 0.08,
-    "root_method": "regula_falsi", "blocks_per_eval": 3, "sign_z": 3.0,
-    "root_se_rel": 0.003, "root_se_accept": 0.02, "max_blocks": 48, "probe_rel": 0.025,
-}
-ROOT_METHODS = ("regula_falsi", "regression")
+DEFAULTS = FlutterOptions().as_dict()     # the options' defaults, as a table
 
 
 def _targets(a0: float, a1: float) -> dict:
@@ -75,7 +69,7 @@ class _Search:
         self.o = o
         self.a0 = 0.0
         self.harmonics = np.zeros(15)     # Picard-iterated target harmonics 2..7 (a and b)
-        self.f = o["frequency_guess"]
+        self.f = o.frequency_guess
         self.history: list[dict] = []
         self.roots_emitted: list[dict] = []
         self.emit_root = None
@@ -84,7 +78,7 @@ class _Search:
         self.settled: set = set()             # targets whose sign of e is known at steady state
         self.last_target = None
         self.t_wall = time.time()
-        self.found: list = []                 # (airspeed, stable, amplitude) found before
+        self.found: list = []                 # (airspeed, stable, target) found before
 
     def evaluate(self, A, quick: bool = False, sign_only: bool = False, coarse: bool = False):
         """Generator: Picard on DC and frequency at target amplitude A, then the
@@ -97,15 +91,15 @@ class _Search:
         `coarse` (a refinement step far from the root, which only places the next
         step) stops once e is known to a few per cent."""
         o = self.o
-        if o["root_method"] == "regression":
+        if o.root_method == "regression":
             return (yield from self._evaluate_blocks(A, quick))
         est = None
         A1_prev = None
         self.settled.discard(A)
-        tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
-        for it in range(o["max_picard"]):
-            yield Configure({**self.targets(A), "frequency": self.f})
-            est = yield Settle(periods=o["navg"] + o["transient_periods"])
+        tol = max(o.tolerance_abs, o.tolerance_rel * A)
+        for it in range(o.max_picard):
+            est = yield from configure_and_settle({**self.targets(A), "frequency": self.f},
+                                                  o.navg + o.transient_periods)
             if not math.isfinite(est.frequency) or est.frequency <= 0:
                 self.history.append(self._row(A, est, float("nan"), it))
                 return None, est
@@ -127,18 +121,18 @@ class _Search:
                 break
             # steady when the Picard variables have stopped moving AND the amplitude has
             # (the DC and the amplitude settle on the slow time scale of the closed loop)
-            if (d_a0 < o["dc_tolerance"] and d_f < o["frequency_tolerance"]
+            if (d_a0 < o.dc_tolerance and d_f < o.frequency_tolerance
                     and moved < 0.5 * tol):
                 self.settled.add(A)
                 break
             A1_prev = A1
-        for _ in range(o["max_gate_polls"]):          # variance gate on the fundamental
+        for _ in range(o.max_gate_polls):          # variance gate on the fundamental
             var = est.fourier["response"]["var"]
             A1 = amplitude(est.fourier["response"]["mean"])
             spread = math.sqrt(max(var[1], 0.0) + max(var[8], 0.0))
-            if spread <= o["variance_rel"] * max(A1, 1e-6):
+            if spread <= o.variance_rel * max(A1, 1e-6):
                 break
-            est = yield Settle(periods=o["navg"])
+            est = yield Settle(periods=o.navg)
         A1 = amplitude(est.fourier["response"]["mean"])
         e = A - A1
         self.evals[A] = (e, est)
@@ -150,7 +144,7 @@ class _Search:
         resp = est.fourier["response"]["mean"]
         self.a0 = float(resp[0])
         self.f = float(min(max(est.frequency, 0.2), 19.0))
-        if self.o["picard_harmonics"]:
+        if self.o.picard_harmonics:
             # higher harmonics of the target follow the response's, so the control
             # has none: only its fundamental (the root condition) remains
             for k in list(range(2, 8)) + list(range(9, 15)):
@@ -165,9 +159,9 @@ class _Search:
         A quick evaluation stops once the sign of e stands out of the blocks' scatter."""
         o = self.o
         # a move within a fraction of the probe step leaves no transient worth a block
-        if self.last_target is None or abs(A - self.last_target) > 0.3 * o["probe_rel"] * A:
-            yield Configure({**self.targets(A), "frequency": self.f})
-            est = yield Settle(periods=o["navg"] + o["transient_periods"])
+        if self.last_target is None or abs(A - self.last_target) > 0.3 * o.probe_rel * A:
+            est = yield from configure_and_settle({**self.targets(A), "frequency": self.f},
+                                                  o.navg + o.transient_periods)
             self.last_target = A
             if not math.isfinite(est.frequency) or est.frequency <= 0:
                 self.history.append(self._row(A, est, float("nan"), 0))
@@ -179,16 +173,16 @@ class _Search:
                 return e, est
         self.last_target = A
         vals = self.blocks.setdefault(A, [])
-        limit = o["blocks_per_eval"] * (2 if quick else 1)
+        limit = o.blocks_per_eval * (2 if quick else 1)
         for it in range(1, limit + 1):
-            yield Configure({**self.targets(A), "frequency": self.f})
-            est = yield Settle(periods=o["navg"])
+            est = yield from configure_and_settle({**self.targets(A), "frequency": self.f},
+                                                  o.navg)
             if not math.isfinite(est.frequency) or est.frequency <= 0:
                 self.history.append(self._row(A, est, float("nan"), it))
                 return None, est
             vals.append(A - self._picard(est))
             self.history.append(self._row(A, est, vals[-1], it))
-            if quick and abs(np.mean(vals)) > o["sign_z"] * self.block_sd(est) / math.sqrt(len(vals)):
+            if quick and abs(np.mean(vals)) > o.sign_z * self.block_sd(est) / math.sqrt(len(vals)):
                 break
         e = float(np.mean(vals))
         self.evals[A] = (e, est)
@@ -204,7 +198,7 @@ class _Search:
         floor = 0.0
         if est is not None:
             var = est.fourier["response"]["var"]
-            floor = math.sqrt((max(var[1], 0.0) + max(var[8], 0.0)) / self.o["navg"])
+            floor = math.sqrt((max(var[1], 0.0) + max(var[8], 0.0)) / self.o.navg)
         pooled = pooled_sd(self.blocks.values())
         return max(pooled or 0.0, floor)
 
@@ -224,16 +218,19 @@ class _Search:
 
 def flutter_plan(config: dict):
     """Build the plan for a flutter campaign from its (validated) config."""
-    o = {**DEFAULTS, **config.get("cbc", {})}
+    o = FlutterOptions.from_table(config.get("cbc"))
     airspeeds = list(config["parameter"]["values"])
 
     def plan(ctx):
-        yield Configure({"kp": o["kp"], "kd": o["kd"], "navg": int(o["navg"]), "phase_mode": 1,
-                         "clamp": o["clamp"], "trip": o["trip"], "airspeed": airspeeds[0],
-                         "frequency": o["frequency_guess"], **_targets(0.0, 0.0)})
-        counter = {"index": len(ctx.previous)}
-        # (airspeed, stable, amplitude) of every cycle found so far, for warm starts
-        found = [(p["parameter"], bool(p["stable"]), p["amplitude"]) for p in ctx.previous
+        yield Configure({"kp": o.kp, "kd": o.kd, "navg": int(o.navg), "phase_mode": 1,
+                         "clamp": o.clamp, "trip": o.trip, "airspeed": airspeeds[0],
+                         "frequency": o.frequency_guess, **_targets(0.0, 0.0)})
+        points = PointLog(ctx)
+        # (airspeed, stable, target amplitude) of every cycle found so far, for warm
+        # starts: a resumed campaign predicts from what the uninterrupted one would
+        found = [(p["parameter"], bool(p["stable"]),
+                  (p.get("extra") or {}).get("target_amplitude", p["amplitude"]))
+                 for p in ctx.previous
                  if p.get("status", "ok") == "ok" and p.get("parameter") is not None]
         faults_in_a_row = 0
         for V in airspeeds:
@@ -243,8 +240,9 @@ def flutter_plan(config: dict):
             for attempt in range(3):
                 s = _Search(V, o)
                 s.found = found
-                s.emit_root = _root_emitter(ctx, counter, s, o)
+                s.emit_root = _root_emitter(points, s, o)
                 try:
+                    yield start_segment(ctx, f"V={V:.4f}")  # from rest, its own noise
                     yield from _search_airspeed(s, o)      # emits each root as it is found
                     faults_in_a_row = 0
                     break
@@ -256,7 +254,7 @@ def flutter_plan(config: dict):
                     yield Emit("note", {"text": f"V = {V}: {exc}; the rest of this airspeed is "
                                                 "abandoned", "interrupted": f"V={V:.4f}"})
                     break
-            if faults_in_a_row >= o["max_faults"]:
+            if faults_in_a_row >= o.max_faults:
                 yield Emit("note", {"text": f"{faults_in_a_row} faults in a row: campaign stopped"})
                 break
         yield Disarm()
@@ -264,20 +262,16 @@ def flutter_plan(config: dict):
     return plan
 
 
-def _root_emitter(ctx, counter, s, o):
-    """Generator factory: the Emit for a refined root (skipped if already logged)."""
+def _root_emitter(points: PointLog, s, o):
+    """Generator function: emit a refined root (unless the file has it already)."""
     def emit(r):
         # keyed by kind, not by order: a root missed once must not rename the others
         kind = "stable" if r["stable"] else "unstable"
         k = sum(1 for x in s.roots_emitted if x["stable"] == r["stable"])
         s.roots_emitted.append(r)
         key = f"V={s.V:.4f}/{kind}{k}"
-        s.found.append((s.V, bool(r["stable"]), r.get("amplitude", r["target"])))
-        if key in ctx.done:
-            return None
-        msg = Emit("point", _point_doc(counter["index"], key, s, r, o))
-        counter["index"] += 1
-        return msg
+        s.found.append((s.V, bool(r["stable"]), r["target"]))
+        yield from points.emit(key, lambda index: _point_doc(index, key, s, r, o))
     return emit
 
 
@@ -292,10 +286,10 @@ def _search_airspeed(s: _Search, o: dict):
     phase-locked target needs the orbit to encircle its centre). The scan ends at
     the stable cycle (beyond it e only grows: the model has no further cycle there).
     """
-    yield Configure({"airspeed": s.V})
+    yield Configure({"airspeed": s.V, "frequency": s.f})
     yield from _from_rest(s, o)
     roots: list = []
-    if o["warm_start"]:
+    if o.warm_start:
         for stable in (False, True):
             guess = _predict(s.found, s.V, stable)
             r = None if guess is None else (yield from _warm_root(s, o, guess, stable))
@@ -307,8 +301,8 @@ def _search_airspeed(s: _Search, o: dict):
             yield Disarm()
             return roots
         yield from _from_rest(s, o)
-    step = o["amplitude_step"]
-    grid = sorted(np.round(np.arange(o["amplitude_min"], o["amplitude_max"] + 1e-12, step), 6))
+    step = o.amplitude_step
+    grid = sorted(np.round(np.arange(o.amplitude_min, o.amplitude_max + 1e-12, step), 6))
     yield from _scan(s, o, grid, roots)
     yield Disarm()
     return roots
@@ -333,9 +327,9 @@ def _warm_root(s: _Search, o: dict, guess: float, stable: bool):
     """Generator: bracket the root of that kind within +- warm_width of the guess
     (at steady state: e > 0 > e above it for an unstable cycle, the reverse for a
     stable one) and refine it; None if the bracket does not hold it."""
-    w = o["warm_width"]
-    lo = max(guess * (1 - w), o["amplitude_min"])
-    hi = min(guess * (1 + w), o["amplitude_max"])
+    w = o.warm_width
+    lo = max(guess * (1 - w), o.amplitude_min)
+    hi = min(guess * (1 + w), o.amplitude_max)
     e_lo, _ = yield from s.evaluate(lo, sign_only=True)
     if e_lo is None or (e_lo < 0) != stable:
         return None
@@ -350,9 +344,8 @@ def _warm_root(s: _Search, o: dict, guess: float, stable: bool):
 
 def _emit(s: _Search, r: dict):
     """Generator: log a refined root now (a later fault cannot lose it)."""
-    msg = s.emit_root(r) if s.emit_root else None
-    if msg is not None:
-        yield msg
+    if s.emit_root:
+        yield from s.emit_root(r)
 
 
 def _scan(s: _Search, o: dict, grid: list, roots: list):
@@ -437,59 +430,10 @@ def _quench(o: dict):
     would start on the last airspeed's stable cycle."""
     yield Configure({"phase_mode": 0, **_targets(0.0, 0.0)})
     yield Arm()
-    for _ in range(o["max_quench"]):
-        est = yield Settle(periods=o["quench_periods"])
-        if amplitude(est.fourier["response"]["mean"]) < 0.25 * o["amplitude_min"]:
+    for _ in range(o.max_quench):
+        est = yield Settle(periods=o.quench_periods)
+        if amplitude(est.fourier["response"]["mean"]) < 0.25 * o.amplitude_min:
             break
-
-
-class _Bracket:
-    """A sign change of e, [lo, hi], narrowed by regula falsi with the Illinois
-    modification (an end kept twice in a row has its working value halved), or by
-    inverse quadratic interpolation where three measurements allow it."""
-
-    def __init__(self, lo, hi, elo, ehi):
-        self.lo, self.hi, self.elo, self.ehi = lo, hi, elo, ehi
-        self.flo, self.fhi = elo, ehi                # Illinois' working values
-        self.side = 0
-        self.third = None                            # the last point that left the bracket
-
-    def falsi(self) -> float:
-        return self.hi - self.fhi * (self.hi - self.lo) / (self.fhi - self.flo)
-
-    def next(self) -> float:
-        """The next target: e is strongly curved near an unstable cycle (steep above
-        it, flat below), where regula falsi creeps from one side; a quadratic through
-        the bracket's ends and the point before follows the curve."""
-        if self.third is not None:
-            pts = [(self.lo, self.elo), (self.hi, self.ehi), self.third]
-            fs = [f for _, f in pts]
-            if len(set(fs)) == 3:
-                x = 0.0
-                for i, (a, fa) in enumerate(pts):
-                    others = [f for j, (_, f) in enumerate(pts) if j != i]
-                    x += a * others[0] * others[1] / ((fa - others[0]) * (fa - others[1]))
-                if self.lo < x < self.hi:
-                    return x
-        return self.falsi()
-
-    def secant(self) -> float:
-        """de/dA* across the bracket, from measured values, never the halved ones."""
-        return (self.ehi - self.elo) / (self.hi - self.lo)
-
-    def update(self, A, e) -> None:
-        if (e > 0) == (self.elo > 0):
-            self.third = (self.lo, self.elo)
-            self.lo, self.elo, self.flo = A, e, e
-            if self.side == -1:
-                self.fhi /= 2
-            self.side = -1
-        else:
-            self.third = (self.hi, self.ehi)
-            self.hi, self.ehi, self.fhi = A, e, e
-            if self.side == 1:
-                self.flo /= 2
-            self.side = 1
 
 
 def _refine(s: _Search, o: dict, lo: float, hi: float):
@@ -500,13 +444,13 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
     if elo * ehi >= 0:
         return None
     decreasing = elo > 0 > ehi
-    if o["root_method"] == "regression":
+    if o.root_method == "regression":
         return (yield from _refine_regression(s, o, lo, hi, elo, ehi, decreasing))
-    b = _Bracket(lo, hi, elo, ehi)
+    b = Bracket(lo, hi, elo, ehi)
     slope = b.secant()
     slow = 0                 # steps in a row that failed to halve the bracket
     A = lo
-    for _ in range(o["max_refine"]):
+    for _ in range(o.max_refine):
         width = b.hi - b.lo
         # interpolation closes in from one side near the root: bisect only when it
         # has stalled twice, not once
@@ -514,7 +458,7 @@ def _refine(s: _Search, o: dict, lo: float, hi: float):
         e, est = yield from s.evaluate(A, coarse=True)
         if e is None:
             return None
-        tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
+        tol = max(o.tolerance_abs, o.tolerance_rel * A)
         b.update(A, e)
         slope = b.secant()
         # the root's location in A* is what matters: near the Hopf point e is shallow
@@ -534,22 +478,22 @@ def _record_root(s: _Search, o: dict, A: float, slope: float, decreasing: bool =
     orbit drifted (an unstable cycle held by a marginal loop), again. A regression
     root is logged once at its target: its acceptance is the root's standard error."""
     if fit is not None:
-        yield Configure({**s.targets(A), "frequency": s.f})
-        est = yield Settle(periods=o["navg"] + o["transient_periods"], record_s=o["record_s"])
+        est = yield from configure_and_settle({**s.targets(A), "frequency": s.f},
+                                              o.navg + o.transient_periods, o.record_s)
         return {"target": A, "error": A - amplitude(est.fourier["response"]["mean"]),
                 "estimate": est, "stable": not decreasing,
-                "converged": fit.se <= o["root_se_accept"] * A,
+                "converged": fit.se <= o.root_se_accept * A,
                 "amplitude": A, "regression": {"root_se": fit.se, "slope": fit.slope,
                                                "blocks": fit.n, "block_sd": fit.residual_sd}}
-    tol = max(o["tolerance_abs"], o["tolerance_rel"] * A)
+    tol = max(o.tolerance_abs, o.tolerance_rel * A)
     ok = False
     e, est = None, None
     for _ in range(3):
         e, est = yield from s.evaluate(A)
         if e is None:
             return None
-        yield Configure({**s.targets(A), "frequency": s.f})
-        est = yield Settle(periods=o["navg"], record_s=o["record_s"])
+        est = yield from configure_and_settle({**s.targets(A), "frequency": s.f}, o.navg,
+                                              o.record_s)
         e = A - amplitude(est.fourier["response"]["mean"])
         # accepted only if the recorded orbit itself satisfies the root condition, to
         # within the tolerance on the root's location (|e| / |de/dA*|, local slope)
@@ -572,13 +516,13 @@ def _refine_regression(s: _Search, o: dict, lo: float, hi: float, elo: float, eh
        stop when their mean's standard error is below root_se_rel of the amplitude
        or the block budget is spent.
     Then the record at the root."""
-    b = _Bracket(lo, hi, elo, ehi)
+    b = Bracket(lo, hi, elo, ehi)
     r = b.falsi()
-    while b.hi - b.lo > 4 * o["probe_rel"] * r:
+    while b.hi - b.lo > 4 * o.probe_rel * r:
         e, est = yield from s.evaluate(r)
         if e is None:
             return None
-        if abs(e) <= o["sign_z"] * s.block_sd(est) / math.sqrt(len(s.blocks[r])):
+        if abs(e) <= o.sign_z * s.block_sd(est) / math.sqrt(len(s.blocks[r])):
             break                                # within the noise of the root
         b.update(r, e)
         r = b.falsi()
@@ -586,17 +530,17 @@ def _refine_regression(s: _Search, o: dict, lo: float, hi: float, elo: float, eh
     slope = secant = b.secant()
     used, fit = 0, None
     while True:
-        fit = root_from_blocks(s.samples(), r, o["probe_rel"] * r, slope, s.block_sd(),
+        fit = root_from_blocks(s.samples(), r, o.probe_rel * r, slope, s.block_sd(),
                                min_slope=0.25 * abs(secant))
         if fit is not None:
             # the bracket's ends had a sign outside the noise, the root is between
             # them; a root close to an end may lie just beyond it (that end's sign was
             # the noise's after all), so allow a couple of probe steps
-            d = 2 * o["probe_rel"] * fit.root
+            d = 2 * o.probe_rel * fit.root
             slope, r = fit.slope, min(max(fit.root, lo - d), hi + d)
-            if fit.se <= o["root_se_rel"] * r and fit.n >= 2 * o["blocks_per_eval"]:
+            if fit.se <= o.root_se_rel * r and fit.n >= 2 * o.blocks_per_eval:
                 break
-        if used >= o["max_blocks"]:
+        if used >= o.max_blocks:
             break
         n0 = len(s.samples())
         e, _ = yield from s.evaluate(r)
@@ -608,35 +552,23 @@ def _refine_regression(s: _Search, o: dict, lo: float, hi: float, elo: float, eh
     return (yield from _record_root(s, o, r, fit.slope, decreasing, fit=fit))
 
 
-def _point_doc(index, key, s: _Search, r: dict, o: dict) -> dict:
+def _point_doc(index, key, s: _Search, r: dict, o: FlutterOptions) -> dict:
     est = r["estimate"]
     resp = est.fourier["response"]["mean"]
-    ts = est.samples or {}
     extra = {"target_amplitude": r["target"], "final_error": r["error"],
              "dc": float(resp[0]), "evaluations": len(s.history),
-             "root_method": o["root_method"]}
+             "root_method": o.root_method}
     if "regression" in r:
         # the amplitude logged is the regression's fixed point; the record's own too
         reg = r["regression"]
         extra.update({"root_se": reg["root_se"], "root_slope": reg["slope"],
                       "root_blocks": reg["blocks"], "block_sd": reg["block_sd"],
                       "record_amplitude": amplitude(resp)})
-    if ts.get("x") is not None and len(ts["x"]):
-        extra["control_rms"] = float(np.sqrt(np.mean(ts["control"] ** 2)))
-        extra["response_rms"] = float(np.sqrt(np.mean((ts["x"] - resp[0]) ** 2)))
-        extra["gap_records"] = int(ts.get("gap_records", 0))
-    timeseries = {k: np.asarray(v) for k, v in ts.items() if k != "gap_records"}
-    settings = {"kp": o["kp"], "kd": o["kd"], "airspeed": s.V, "frequency": s.f,
-                "navg": o["navg"], **s.targets(r["target"])}
-    return {
-        "index": index, "key": key, "rig": "flutter", "parameter": float(s.V),
-        "parameter_name": "airspeed", "frequency": float(est.frequency),
-        "amplitude": float(r.get("amplitude", amplitude(resp))), "stable": bool(r["stable"]),
-        "stability_method": STABILITY_METHOD,
-        "status": "ok" if r["converged"] else "not_converged",
-        "settings": settings,
-        "fourier": {ch: {"mean": np.asarray(v["mean"]), "var": np.asarray(v["var"])}
-                    for ch, v in est.fourier.items()},
-        "history": s.history, "rig_time": est.rig_time, "wall_time": time.time() - s.t_wall,
-        "timeseries": timeseries, "extra": extra,
-    }
+    settings = {"kp": o.kp, "kd": o.kd, "airspeed": s.V, "frequency": s.f,
+                "navg": o.navg, **s.targets(r["target"])}
+    return point_doc(
+        index=index, key=key, rig="flutter", parameter=s.V, parameter_name="airspeed",
+        frequency=est.frequency, amplitude=r.get("amplitude", amplitude(resp)),
+        stable=r["stable"], stability_method=STABILITY_METHOD, converged=r["converged"],
+        settings=settings, estimate=est, dc=resp[0], history=s.history,
+        wall_time=time.time() - s.t_wall, extra=extra)

@@ -44,7 +44,7 @@ _HOLDING_INDEX = _index("holding")
 # holding-register name -> board setting name
 _SETTING = {name: name for name in (
     "kp", "kd", "frequency", "clamp", "trip", "filter_hz", "watchdog_timeout", "navg",
-    "phase_mode", "ring_decimation")}
+    "phase_mode", "ring_decimation", "noise_seed")}
 _SETTING.update({"airspeed": "parameter", "forcing_amplitude": "parameter"})
 for _c in M.COEFS:
     _SETTING[f"target_{_c}"] = f"target_{_c}"
@@ -223,7 +223,7 @@ class RigRegisters:
                     self.board.heartbeat()
                 elif self.owner is not client:
                     return ExcCodes.DEVICE_BUSY
-            if "advance" in names and not self.lockstep:
+            if ("advance" in names or "noise_seed" in names) and not self.lockstep:
                 return ExcCodes.ILLEGAL_FUNCTION   # only meaningful in lockstep
             for reg, value in decoded:
                 if reg.name == "command" and value == 1 and self.board.fault != 0:

@@ -17,6 +17,8 @@ Conventions (as a device datasheet would state them)
 - Writes (except to ``control``) need control of the rig: a client that writes
   while nobody holds control takes it implicitly; a write from another client
   while one holds it answers SERVER DEVICE BUSY (06).
+- Unit id (`rig-sim serve --unit`, default 1), broadcasts and the TCP gateway
+  answer: `addressing.py` and docs/protocol.md.
 - The sample ring buffer is a memory-mapped array of int16 records, see
   `RING_*` and docs/registers.md.
 Pure Python on purpose: no numpy, no rig internals.
@@ -44,6 +46,7 @@ RING_SCALES = {  # register holding the full scale that int16 32767 stands for
     "x": "fs_x", "x_dot": "fs_x_dot", "q2": "fs_q2", "q2_dot": "fs_q2_dot",
     "target": "fs_x", "control": "fs_control", "parameter": "fs_parameter",
 }
+CHANNEL_WORDS = 2 + 4 * len(COEFS)   # periods (u32), then mean and variance (f32) per coefficient
 MAX_READ = 125       # Modbus limit on registers per read
 
 STATUS_BITS = {
@@ -160,6 +163,10 @@ def _table() -> list[Register]:
         Register("advance", H, 24, "u32", "samples", "rw",
                  "lockstep only: advance the simulation this many samples, answered when done",
                  range=(1, 1_000_000)),
+        Register("noise_seed", H, 28, "u32", "", "rw",
+                 "lockstep only: restart the simulation from rest (disarmed, estimator cleared) "
+                 "with its noise streams seeded from this value; settings and counters stay",
+                 range=(0, 2**31 - 1)),
     ]
     for i, c in enumerate(COEFS):
         r.append(Register(f"target_{c}", H, 30 + 2 * i, "f32", "m", "rw",
@@ -251,6 +258,16 @@ def ring_address(record: int) -> int:
     return RING_BASE + (record % RING_CAPACITY) * RING_RECORD
 
 
+def channel_of(reg: Register) -> str | None:
+    """The Fourier channel whose estimate block holds `reg` (None: not in one)."""
+    if reg.table != "input":
+        return None
+    for ch, base in CHANNEL_BASE.items():
+        if base <= reg.address < base + CHANNEL_WORDS:
+            return ch
+    return None
+
+
 def f32_words(value: float) -> list[int]:
     return encode(Register("_", "holding", 0, "f32", "", "rw", ""), value)
 
@@ -286,14 +303,17 @@ def as_markdown(compact: bool = True) -> str:
         "f32 = IEEE-754 float over two registers, big-endian word order (ABCD, `mbpoll -B`); "
         "u32 the same word order; str16 = 16 ASCII characters, high byte first.",
         "",
-        "| table or address | name | type | unit | access | range | rigs | description |",
+        "Unit id, broadcasts and exception replies: see [protocol.md](protocol.md).",
+        "",
+        "| table | address | name | type | unit | access | range | rigs | description |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for reg in REGISTERS:
-        if compact and any(reg.name.startswith(f"{ch}_") for ch in CHANNELS):
+        if compact and channel_of(reg) is not None:
             continue
-        lines.append(f"| {reg.table} | {reg.address} | `{reg.name}` | {reg.type} | {reg.unit} | "
-                     f"{reg.access} | {_fmt_range(reg)} | {reg.rigs} | {reg.description} |")
+        cells = [reg.table, reg.address, f"`{reg.name}`", reg.type, reg.unit, reg.access,
+                 _fmt_range(reg), reg.rigs, reg.description]
+        lines.append("| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |")
     if compact:
         for ch in CHANNELS:
             b = CHANNEL_BASE[ch]

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pymodbus import FramerType
 from pymodbus.constants import ExcCodes
 from pymodbus.exceptions import ModbusIOException
+from pymodbus.framer import FramerRTU
 from pymodbus.pdu import ExceptionResponse
 from pymodbus.pdu.device import ModbusDeviceIdentification
 from pymodbus.pdu.register_message import ReadWriteMultipleRegistersRequest
@@ -34,6 +35,8 @@ from pymodbus.transport import CommType
 
 from ..firmware.board import Board
 from . import register_map as M
+from .addressing import (GATEWAY_TARGET_FAILED, Addressing, Route, SerialLineAddressing, TcpAddressing,
+                         check_unit)
 from .datastore import CURRENT_CLIENT, RigRegisters
 
 
@@ -57,15 +60,15 @@ def _fc23_counts_ok(pdu: ReadWriteMultipleRegistersRequest) -> bool:
             and pdu.write_byte_count == 2 * pdu.write_count and payload in (None, pdu.write_byte_count))
 
 
-def _handler_class(registers: RigRegisters):
+def _handler_class(registers: RigRegisters, addressing: Addressing):
     class RigRequestHandler(ServerRequestHandler):
         """pymodbus's handler plus: the request's connection (for control of the
         rig), one queued PDU per scheduled handling (pymodbus keeps only the last
         decoded PDU, so two requests decoded before the first is handled ran the
         second twice and the first never), every complete frame of a read decoded
         and an undecodable frame dropping only itself (pipelined TCP requests),
-        the RTU inter-frame silence, and FC23 validating its read part before it
-        writes."""
+        the RTU inter-frame silence, FC23 validating its read part before it
+        writes, and the unit id routing each request (addressing.py)."""
 
         def __init__(self, *args, **kwargs):
             super().__init__(*args, **kwargs)
@@ -92,43 +95,92 @@ def _handler_class(registers: RigRegisters):
                     break
                 buf = buf[cut:]
             self.recv_buffer = b"" if len(buf) > self.max_buffer_size else buf
+            if self._rtu and self.recv_buffer:
+                self.loop.call_later(RTU_FRAME_SILENCE_S, self._line_silent, self._last_rx)
+
+        def _line_silent(self, rx_time: float) -> None:
+            """Silence ends an RTU frame. A frame still held when the line falls silent
+            is one the framer could not size: a function code this device does not
+            know. With a valid CRC it is a request, answered ILLEGAL FUNCTION."""
+            frame = self.recv_buffer
+            if self._last_rx != rx_time or len(frame) < 4:
+                return
+            self.recv_buffer = b""
+            crc = int.from_bytes(frame[-2:], "big")
+            if FramerRTU.check_CRC(frame[:-2], crc) and self.framer.decoder.lookupPduClass(frame) is None:
+                self._answer_unknown(frame[1], frame[0], 0, None)
 
         def callback_data(self, data, addr=None):
             # ServerRequestHandler.callback_data, except that an undecodable frame
-            # costs only that frame (not the requests pipelined behind it) and
-            # each decoded PDU is queued for its own handling
+            # costs only that frame (not the requests pipelined behind it), the
+            # unit id routes every frame (addressing.py), an unknown function is
+            # answered with its own code + 0x80, and each decoded PDU is queued
+            # for its own handling
             try:
                 used = TransactionManager.callback_data(self, data, addr)
-            except ModbusIOException as exc:
-                response = ExceptionResponse(exc.fcode or 0, exception_code=ExcCodes.ILLEGAL_FUNCTION,
-                                             device_id=exc.dev_id, transaction=exc.transaction_id)
-                self.server_send(response, addr)
-                return len(data) if self._rtu else (self.framer.decode(data)[0] or len(data))
-            if self.last_pdu is not None:
-                self._pending.append((self.last_pdu, self.last_addr))
+            except ModbusIOException:
+                used, unit, tid, pdu_bytes = self.framer.decode(data)
+                function_code = pdu_bytes[0] if pdu_bytes else 0
+                self._answer_unknown(function_code, unit, tid, addr)
+                return len(data) if self._rtu else (used or len(data))
+            pdu = self.last_pdu
+            if pdu is None:
+                return used
+            if isinstance(pdu, ExceptionResponse):
+                # a request with a code >= 0x81 (pymodbus decodes it as an exception reply)
+                self._answer_unknown(pdu.function_code, pdu.dev_id, pdu.transaction_id, addr)
+                return used
+            route = addressing.route(pdu.dev_id, pdu.function_code)
+            if route is Route.GATEWAY_FAILURE:
+                self._send_exception(pdu.function_code, GATEWAY_TARGET_FAILED, pdu.dev_id,
+                                     pdu.transaction_id, addr)
+            elif route is not Route.IGNORE:
+                self._pending.append((pdu, self.last_addr, route is Route.ANSWER))
                 self.loop.call_soon(self.handle_later)
             return used
+
+        def _answer_unknown(self, function_code, unit, tid, addr):
+            """ILLEGAL FUNCTION to a function this device does not serve; the reply's
+            function byte is the request's code with the exception bit set (codes
+            0x80..0xFF, reserved for replies, already have it: the byte is echoed)."""
+            route = addressing.route(unit, function_code)
+            if route is Route.ANSWER:
+                self._send_exception(function_code, ExcCodes.ILLEGAL_FUNCTION, unit, tid, addr)
+            elif route is Route.GATEWAY_FAILURE:
+                self._send_exception(function_code, GATEWAY_TARGET_FAILED, unit, tid, addr)
+
+        def _send_exception(self, function_code, code, unit, tid, addr):
+            self.server_send(ExceptionResponse(function_code, exception_code=code, device_id=unit,
+                                               transaction=tid), addr)
 
         async def handle_request(self):
             if not self._pending:
                 return
-            self.last_pdu, self.last_addr = self._pending.popleft()
-            pdu = self.last_pdu
+            pdu, addr, answer = self._pending.popleft()
+            self.last_pdu, self.last_addr = pdu, addr
             if isinstance(pdu, ReadWriteMultipleRegistersRequest) and _fc23_counts_ok(pdu):
                 # FC23 writes before it reads; an illegal read part must not write
                 # (counts first: those the PDU checks itself, answering 03)
                 probe = registers.read(pdu.function_code, pdu.read_address, pdu.read_count, self)
                 if isinstance(probe, ExcCodes):
-                    response = ExceptionResponse(pdu.function_code, probe)
-                    response.transaction_id = pdu.transaction_id
-                    response.dev_id = pdu.dev_id
-                    self.server_send(response, self.last_addr)
+                    if answer:
+                        self._send_exception(pdu.function_code, probe, pdu.dev_id, pdu.transaction_id, addr)
                     return
             token = CURRENT_CLIENT.set(self)
             try:
-                await super().handle_request()
+                response = await pdu.datastore_update(registers, pdu.dev_id)
+            except Exception as exc:  # noqa: BLE001
+                # a request pymodbus decodes but cannot serve (FC8 with a sub-function
+                # it does not know raises KeyError): the function is not served, which
+                # is 01 (pymodbus would answer 04 and log a traceback)
+                logging.getLogger(__name__).debug("request %s not served: %r", pdu, exc)
+                response = ExceptionResponse(pdu.function_code, ExcCodes.ILLEGAL_FUNCTION)
             finally:
                 CURRENT_CLIENT.reset(token)
+            if answer:
+                response.transaction_id = pdu.transaction_id
+                response.dev_id = pdu.dev_id
+                self.server_send(response, addr)
 
         def callback_disconnected(self, exc):
             # a client that goes away gives control back; if it left the rig armed,
@@ -139,8 +191,8 @@ def _handler_class(registers: RigRegisters):
     return RigRequestHandler
 
 
-def _bind(server, registers: RigRegisters):
-    handler = _handler_class(registers)
+def _bind(server, registers: RigRegisters, addressing: Addressing):
+    handler = _handler_class(registers, addressing)
     server.context = registers
     server.callback_new_connection = lambda: handler(
         server, server.trace_packet, server.trace_pdu, server.trace_connect)
@@ -232,9 +284,14 @@ class RigService:
     """Board + registers + clock + transports, run on one asyncio loop."""
 
     def __init__(self, board: Board, pacing: Pacing, host: str | None = "127.0.0.1",
-                 port: int | None = 5020, serial: str | None = None, baudrate: int = 115200):
+                 port: int | None = 5020, serial: str | None = None, baudrate: int = 115200,
+                 unit: int = 1):
         if host is None and serial is None:
             raise ServiceError("nothing to serve: give a TCP port or --serial PORT")
+        try:
+            self.unit = check_unit(unit)
+        except ValueError as exc:
+            raise ServiceError(str(exc)) from None
         self.board = board
         self.pacing = pacing
         self.registers = RigRegisters(board, lockstep=pacing.mode == "lockstep")
@@ -257,13 +314,13 @@ class RigService:
         if self.host is not None:
             tcp = ModbusTcpServer(_placeholder_device(), framer=FramerType.SOCKET,
                                   identity=ident, address=(self.host, self.port))
-            _bind(tcp, self.registers)
+            _bind(tcp, self.registers, TcpAddressing(self.unit))
             await tcp.serve_forever(background=True)
             self.servers.append(tcp)
         if self.serial is not None:
             rtu = ModbusSerialServer(_placeholder_device(), framer=FramerType.RTU,
                                      identity=ident, port=self.serial, baudrate=self.baudrate)
-            _bind(rtu, self.registers)
+            _bind(rtu, self.registers, SerialLineAddressing(self.unit))
             try:
                 await rtu.serve_forever(background=True)
             except RuntimeError:

@@ -110,6 +110,7 @@ class Board:
         self.rate = rate
         self.dt = 1.0 / rate
         self.rng = np.random.Generator(np.random.PCG64(options.seed))
+        self.noise_seed = options.seed % 2**31         # reads back the last seed written
 
         rig = np.zeros(L.RIG_SIZE)
         rig[L.RIG_KIND] = 0.0 if spec.kind == "flutter" else 1.0
@@ -237,6 +238,8 @@ class Board:
                 return float(self.cfg[L.CFG_TARGET + _TARGET_INDEX[name]])
             if name == "watchdog_timeout":
                 return self.watchdog_s
+            if name == "noise_seed":
+                return float(self.noise_seed)
             raise SettingError(f"unknown setting {name}")
 
     def _set_kp(self, v):
@@ -290,6 +293,25 @@ class Board:
     def _set_watchdog_timeout(self, v):
         _check("watchdog_timeout", v, *map_range(self.spec.kind, "watchdog_timeout"))
         self.watchdog_s = v
+
+    def _set_noise_seed(self, v):
+        """A reproducible restart (lockstep): the structure at rest, the firmware's state and
+        estimator cleared, disarmed, the noise streams seeded from `v`: from here on the run
+        is the same as a fresh board's given the same settings and host commands, whatever
+        happened before. Settings, the latched fault and the counters (samples, periods,
+        ring) stay, so a host keeps its bearings."""
+        if v != int(v):
+            raise SettingError("noise_seed: must be an integer")
+        _check("noise_seed", v, *map_range(self.spec.kind, "noise_seed"))
+        self.noise_seed = int(v)
+        self.rng = np.random.Generator(np.random.PCG64(self.noise_seed))
+        self.y[:] = 0.0
+        self.fw[:] = 0.0
+        self.delay[:] = 0.0
+        self.ext[:] = 0.0
+        self.ic[L.IC_DELAY_POS] = 0
+        self.ic[L.IC_ARMED] = 0
+        self._reset_estimator()
 
     # ------------------------------------------------------------------ commands
     def arm(self) -> None:

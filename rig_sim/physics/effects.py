@@ -93,15 +93,23 @@ def parse_effects(rig: str, specs: list[str] | None) -> tuple[np.ndarray, dict[s
 PluginForce = Callable[[float, np.ndarray, np.ndarray, MappingProxyType], object]
 
 
-def load_plugin(spec: str) -> PluginForce:
-    """Load ``FILE.py:FUNC`` or ``package.module:FUNC``; raise EffectError with one line."""
+def plugin_source(spec: str) -> tuple[str, str, bool]:
+    """(file or module, function name, whether it is a file) of ``FILE.py:FUNC`` or
+    ``package.module:FUNC``, checked without running anything; EffectError with one line."""
     target, sep, func_name = spec.rpartition(":")
     if not sep or not target or not func_name:
         raise EffectError(f"--effect-plugin {spec!r}: expected FILE.py:FUNC or module:FUNC")
-    if target.endswith(".py") or "/" in target:
+    is_file = target.endswith(".py") or "/" in target
+    if is_file and not Path(target).is_file():
+        raise EffectError(f"--effect-plugin: file not found: {target}")
+    return target, func_name, is_file
+
+
+def load_plugin(spec: str) -> PluginForce:
+    """Load ``FILE.py:FUNC`` or ``package.module:FUNC``; raise EffectError with one line."""
+    target, func_name, is_file = plugin_source(spec)
+    if is_file:
         path = Path(target)
-        if not path.is_file():
-            raise EffectError(f"--effect-plugin: file not found: {target}")
         mod_name = f"_rig_plugin_{abs(hash(str(path.resolve())))}"
         module_spec = importlib.util.spec_from_file_location(mod_name, path)
         if module_spec is None or module_spec.loader is None:
