@@ -241,3 +241,37 @@ def test_parameter_file_values_are_used_and_said_so(negative_damping, tmp_path):
     assert ident["sources"]["c_h"] == ident["sources"]["m_T"] == f"user file {p}"
     assert ident["sources"]["k_h"].startswith("identified from the orbits")
     assert "c_h" not in ident["std_error"]
+
+
+def test_report_lists_unknown_points_holding_and_parameter_sources(named):
+    """report.md from a metrics document: the unknown-stability point by file, the holding
+    table with every point's figures, and where each mechanistic parameter came from."""
+    from ude_fit.report.markdown import render
+
+    ds = load(named, "flutter")
+    metrics = {
+        "system": "flutter", "version": "test", "written": "now", "command": "ude-fit fit",
+        "approximator": "nn", "training": "periodic", "ude": None,
+        "data": {"points": len(ds), "stable": 1, "unstable": 2, "sources": list(ds.sources),
+                 "max_amplitude": float(ds.amplitudes().max()),
+                 "unknown_stability": ds.unknown_stability(),
+                 "point_records": ds.point_records()},
+        "mechanistic": {"branch_rms": None, "branch_max": None, "missed": 4,
+                        "trajectory_rms": None, "hopf": None, "fold": None, "points": [],
+                        "parameters": {"c_h": 0.0}, "std_error": {"c_h": 0.1},
+                        "identification": {
+                            "method": "equation error (bounded)", "known": {"m_T": 16.9},
+                            "sources": {"c_h": "identified from the orbits, at its physical "
+                                               "bound 0", "m_T": "user file rig.toml"}}},
+        "starts": {"requested": 1, "adequate": 0, "completed": 0, "dropped": [],
+                   "records": [], "criterion": {"factor_of_best": 2.0, "floor": 0.01,
+                                                "data_scatter": None}},
+    }
+    text = render(metrics, {})
+    unknown = ds.unknown_stability()[0]
+    assert "1 point(s) of unknown stability" in text and f"`{unknown}`" in text
+    assert "stability checks (training and the adequacy test) skip them" in text
+    table = text[text.index("### Holding control"):]
+    assert all(f"`{o.source}`" in table for o in ds)
+    assert "| c_h | 0 | 0.1 | identified from the orbits, at its physical bound 0 |" in text
+    assert "| m_T | 16.9 | — | user file rig.toml |" in text
