@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import jax
 import pytest
@@ -19,8 +21,12 @@ from ude_fit.cli.options import fit_options
 
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
+# a parameter file for --mechanistic-params (read when the options are built)
+PARAMS_TOML = Path(tempfile.mkdtemp(prefix="ude_cli_")) / "rig.toml"
+PARAMS_TOML.write_text("k_h = 3300.0\n")
+
 # every fit option at a value other than its default (the NN approximator's, and the GP's)
-NN_FLAGS = ["--training", "trajectory", "--mechanistic", "periodic", "--starts", "3",
+NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory", "--mechanistic", "periodic", "--starts", "3",
             "--seed", "7", "--width", "9", "--depth", "3", "--energy-shape", "1.5",
             "--energy-rising", "2.5", "--rest-stability", "3.5",
             "--equilibrium-penalty", "4.5", "--smoothness-penalty", "5.5",
@@ -51,7 +57,7 @@ def test_every_fit_flag_is_set_by_the_test_and_taken_by_the_pipeline():
     pipe = {a.dest for a in sub.choices["pipeline"]._actions}
     assert _fit_dests() <= pipe
     flags = {f.lstrip("-").replace("-", "_") for f in NN_FLAGS + GP_FLAGS if f.startswith("--")}
-    assert _fit_dests() - {"data", "system"} == flags
+    assert _fit_dests() - {"data", "system", "stability"} == flags
 
 
 def test_pipeline_hands_the_library_the_options(monkeypatch, tmp_path):
@@ -65,7 +71,8 @@ def test_pipeline_hands_the_library_the_options(monkeypatch, tmp_path):
         seen["options"] = options
         raise Reached
 
-    monkeypatch.setattr(cli_common, "load", lambda paths, system: OrbitDataset(system, (), ()))
+    monkeypatch.setattr(cli_common, "load", lambda paths, system, stability=None:
+                        OrbitDataset(system, (), ()))
     monkeypatch.setattr(pipeline_cli, "run_pipeline", run_pipeline)
     argv = ["pipeline", "data.h5", "--system", "flutter", *NN_FLAGS, "--max-effects", "2",
             "--out", str(tmp_path / "o"), "--quiet"]

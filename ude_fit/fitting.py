@@ -27,7 +27,8 @@ from .analysis.adequacy import data_scatter, fold_count, judge_starts, needs_fol
 from .analysis.diagram import _evaluate, diagram_ranges
 from .data.estimates import estimate_from_data
 from .data.orbit import DataError, OrbitDataset
-from .models.mechanistic import model_class
+from .models.mechanistic import FLUTTER_NOMINAL, parameters_of
+from .models.parameter_file import MechanisticParameters
 from .models.ude import UDE
 from .training.gp import fit_gp
 from .training.identify import TrainingData, augment, identify, residual_forces, training_data
@@ -139,21 +140,37 @@ def prepare(ds: OrbitDataset, system: str, reference: dict | None, samples: int)
 
 
 def identify_mechanistic(data: TrainingData, system: str, *, bootstrap: int = 0,
-                         seed: int = 0):
-    """The least-squares mechanistic model, or the design values where that estimate is
-    unphysical (recorded in the returned info)."""
-    mech, ident = identify(data, system, bootstrap=bootstrap, seed=seed)
-    ident["method"] = "equation error (least squares)"
-    bad = mech.unphysical()
-    if bad:
-        # equation error on noisy derivatives can land on negative damping or stiffness,
-        # which no passive structure has: the design values stand in (and it is recorded)
-        ident["equation_estimate_rejected"] = bad
-        ident["equation_parameters"] = ident["parameters"]
-        mech = model_class(system).nominal()
-        ident["method"] = "design values (the least-squares estimate was unphysical)"
-        ident["parameters"] = mech.parameters()
+                         seed: int = 0, given: MechanisticParameters | None = None):
+    """The mechanistic model from the data: damping and stiffness by least squares bounded
+    to their physical signs (never another rig's values), with the user's ``given`` values
+    in their place. The info's ``sources`` says where every parameter came from."""
+    base = None
+    if given is not None and given.known:          # only the aerofoil has known geometry
+        base = {**FLUTTER_NOMINAL, **given.known}
+    mech, ident = identify(data, system, base, fixed=None if given is None else given.fitted,
+                           bootstrap=bootstrap, seed=seed)
+    ident["method"] = "equation error (least squares, damping and stiffness bounded at 0)"
+    ident["known"] = {n: v for n, v in parameters_of(mech).items()
+                      if n not in ident["parameters"]}
+    ident["sources"] = parameter_sources(mech, ident, given)
     return mech, ident
+
+
+def parameter_sources(mech, ident: dict, given: MechanisticParameters | None) -> dict:
+    """Every parameter of ``mech`` by name: where its value came from."""
+    given_names = set() if given is None else set(given.known) | set(given.fitted)
+    out = {}
+    for name in parameters_of(mech):
+        if name in given_names:
+            out[name] = f"user file {given.path}"
+        elif name in ident.get("at_bound", ()):
+            out[name] = (f"identified from the orbits, at its physical bound 0 (the "
+                         f"unconstrained estimate was {ident['unconstrained'][name]:.4g})")
+        elif name in ident["parameters"]:
+            out[name] = "identified from the orbits (least squares)"
+        else:
+            out[name] = "known geometry (design value)"
+    return out
 
 
 def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
@@ -176,7 +193,7 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
         return _fit_on(mechanistic, ds, data, opts, ranges, ref, ref_source, say, t_start,
                        verbose=progress is not None)
     say(event="stage", stage="mechanistic identification")
-    mech, ident = identify_mechanistic(data, opts.system)
+    mech, ident = identify_mechanistic(data, opts.system, given=opts.mechanistic_parameters)
     mech_model = UDE(mech)
     if opts.mechanistic == "periodic":
         say(event="stage", stage="mechanistic identification (periodic orbits)")
@@ -241,7 +258,9 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                  "stable": int(sum(1 for o in ds if o.stable is True)),
                  "unstable": int(sum(1 for o in ds if o.stable is False)),
                  "max_amplitude": float(ds.amplitudes().max()),
-                 "noise_rms": _relative_noise(ds), "scatter": scatter},
+                 "noise_rms": _relative_noise(ds), "scatter": scatter,
+                 "unknown_stability": ds.unknown_stability(),
+                 "point_records": ds.point_records()},
         "mechanistic": {**mech_m, "parameters": ident["parameters"],
                         "identification": {k: v for k, v in ident.items()
                                            if k not in ("parameters", "std_error")},

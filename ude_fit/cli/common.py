@@ -47,8 +47,18 @@ def start(args, build_options):
         opts = build_options(args)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    ds = load(args.data, args.system)
+    ds = load_data(args)
     return opts, ds, out_dir(args.out), Progress(args.quiet)
+
+
+def load_data(args):
+    """The dataset DATA... and --system (and --stability) ask for."""
+    from ..data import StabilityLabels
+    try:
+        labels = StabilityLabels.parse(args.stability)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    return load(args.data, args.system, labels)
 
 
 class Progress:

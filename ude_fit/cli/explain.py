@@ -8,14 +8,13 @@ import os
 import jax
 import numpy as np
 
-from ..data import load
 from ..discovery.explain import explain
 from ..model_file import load_model
 from ..report.files import provenance, write_json, write_text
 from ..report.loop_markdown import candidates_section, render_explain
 from ..report.plots import parameter_label, plot_residuals
 from ..training.identify import augment, training_data
-from .common import Progress, UsageError, command_line, out_dir
+from .common import Progress, UsageError, command_line, load_data, out_dir
 from .loop import add_common
 
 
@@ -28,7 +27,7 @@ def add_parser(sub) -> None:
 
 
 def run(args, argv) -> int:
-    ds = load(args.data, args.system)
+    ds = load_data(args)
     model = _model(args) if args.model else None     # checked before anything is written
     out = out_dir(args.out)
     progress = Progress(args.quiet)

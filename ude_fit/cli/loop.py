@@ -3,12 +3,11 @@ add the top-ranked effect -> refit, while the diagram improves)."""
 
 from __future__ import annotations
 
-from ..data import load
 from ..discovery.loop import close_loop, fit_udes, parse_add, refine
 from ..report.files import provenance
 from ..report.loop_files import write_loop
 from ..training.options import FitOptions
-from .common import Progress, UsageError, command_line, out_dir
+from .common import Progress, UsageError, command_line, load_data, out_dir
 from .options import add_data_arguments, nonnegative_float, positive_int
 
 
@@ -80,7 +79,7 @@ def run_refine(args, argv) -> int:
         add = parse_add(args.system, args.add)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    ds = load(args.data, args.system)
+    ds = load_data(args)
     progress = Progress(args.quiet)
     res = refine(ds, args.system, add, seed=args.seed, bootstrap=args.bootstrap,
                  progress=progress)
@@ -90,7 +89,7 @@ def run_refine(args, argv) -> int:
 def run_loop(args, argv) -> int:
     if args.min_gain >= 1:
         raise UsageError(f"--min-gain must be below 1, not {args.min_gain}")
-    ds = load(args.data, args.system)
+    ds = load_data(args)
     progress = Progress(args.quiet)
     res = close_loop(ds, args.system, max_effects=args.max_effects, min_gain=args.min_gain,
                      seed=args.seed, bootstrap=args.bootstrap,

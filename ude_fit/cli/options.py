@@ -62,6 +62,12 @@ def add_data_arguments(p) -> None:
     p.add_argument("data", nargs="+", metavar="DATA",
                    help="campaign HDF5 files, lee2020 .mat files, or folders of them")
     p.add_argument("--system", required=True, choices=SYSTEMS)
+    p.add_argument("--stability", action="append", default=[], metavar="GLOB=LABEL",
+                   help="stability of the points whose file name matches GLOB (shell "
+                   "pattern; a campaign point also matches as NAME.h5#KEY): stable or "
+                   "unstable; several rules comma-separated or the flag repeated. Wins over "
+                   "the file names (CBC_stable_*, CBC_unstable_*, CBC_v*) and the campaign's "
+                   "own labels; a rule that matches no point is an error")
 
 
 def add_fit_arguments(p) -> None:
@@ -103,6 +109,10 @@ def add_fit_arguments(p) -> None:
                    "it cannot move the equilibrium or its linearisation; a damping term per "
                    "coordinate, affine in the airspeed, carries the linear change (where "
                    "the Hopf point lies)")
+    p.add_argument("--mechanistic-params", metavar="FILE.toml",
+                   help="the mechanistic model's values you know (TOML, name = number): "
+                   "geometry replaces the design values, damping/stiffness given are not "
+                   "identified; the report says where every parameter came from")
     p.add_argument("--reference-hopf", type=finite_float("--reference-hopf"), metavar="V",
                    help="known Hopf airspeed (m/s) for the error figures")
     p.add_argument("--reference-fold", type=finite_float("--reference-fold"), metavar="V",
@@ -116,8 +126,13 @@ def fit_options(args):
     from ..training.penalties import PENALTIES
     from ..training.options import TrainConfig
 
+    from ..models.parameter_file import MechanisticParameters
+
     penalties = tuple(kind(getattr(args, kind.option.replace("-", "_"))) for kind in PENALTIES)
+    params = (None if args.mechanistic_params is None else
+              MechanisticParameters.read(args.mechanistic_params, args.system))
     return FitOptions(
+        mechanistic_parameters=params,
         system=args.system, approximator=args.approximator, training=args.training,
         starts=args.starts, seed=args.seed, mechanistic=args.mechanistic,
         reference_hopf=args.reference_hopf, reference_fold=args.reference_fold,

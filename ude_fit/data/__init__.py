@@ -6,6 +6,8 @@ from .estimates import estimate_from_data
 from .lee import load_lee
 from .load import load
 from .orbit import DataError, Orbit, OrbitDataset
+from .stability import StabilityLabels, StabilityRule, stability_from_name
 
 __all__ = ["DataError", "Orbit", "OrbitDataset", "estimate_from_data", "load",
-           "load_campaign", "load_lee"]
+           "load_campaign", "load_lee", "StabilityLabels", "StabilityRule",
+           "stability_from_name"]

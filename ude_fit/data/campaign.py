@@ -11,6 +11,8 @@ import numpy as np
 
 from .._fourier import K, NCOEF, _fit, fourier_fit, refine_frequency
 from .._systems import KINDS
+from .holding import measure_holding
+from .stability import stability_from_name
 from .orbit import (COORDINATES, DataError, Orbit, OrbitDataset, _check_file, _flutter_frame,
                     _one_line, _oscillator_frame)
 
@@ -20,7 +22,7 @@ MIN_PERIODS = 2.0                 # a raw record shorter than this is not used f
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 _JSON_ATTRS = "_json_attrs"
-_RECORD_FIELDS = ("sample", "x", "q2", "phase", "control", "parameter")
+_RECORD_FIELDS = ("sample", "x", "q2", "phase", "control", "target", "parameter")
 
 
 def _py(v):
@@ -115,7 +117,7 @@ def _flutter_point(g, label: str, rec: dict | None, sample_rate: float, a: dict,
         raise DataError(f"{label}: no valid frequency ({a.get('frequency')!r})")
     noise = np.full(2, np.nan)
     periods = _as_float(settings.get("navg"))
-    coeffs = None
+    coeffs = holding = None
     if (rec is not None and sample_rate > 0 and "sample" in rec and "x" in rec and "q2" in rec):
         t = rec["sample"].astype(float) / sample_rate
         dur = float(t[-1] - t[0]) if t.size > 1 else 0.0
@@ -124,6 +126,7 @@ def _flutter_point(g, label: str, rec: dict | None, sample_rate: float, a: dict,
             freq = refine_frequency(t, Y[:, 0], freq)
             coeffs, noise = fourier_fit(t, Y, freq)
             periods = dur * freq
+            holding = _holding(rec, 2.0 * np.pi * freq * t, settings, freq, "N")
     if coeffs is None:
         resp = _dataset(g, "fourier/response/mean")
         second = _dataset(g, "fourier/second/mean")
@@ -136,8 +139,8 @@ def _flutter_point(g, label: str, rec: dict | None, sample_rate: float, a: dict,
     if not math.isfinite(airspeed):
         raise DataError(f"{label}: no valid airspeed (parameter = {a.get('parameter')!r})")
     return Orbit(parameter=airspeed, frequency=freq,
-                 stable=_stable_attr(a), coeffs=_flutter_frame(coeffs), forcing=None,
-                 noise=noise, periods=periods, source=label)
+                 **_stability(a, label), coeffs=_flutter_frame(coeffs), forcing=None,
+                 noise=noise, periods=periods, source=label, holding=holding)
 
 
 def _oscillator_point(g, label: str, rec: dict | None, sample_rate: float, a: dict,
@@ -149,7 +152,7 @@ def _oscillator_point(g, label: str, rec: dict | None, sample_rate: float, a: di
         raise DataError(f"{label}: no valid forcing frequency")
     noise = np.full(1, np.nan)
     periods = _as_float(settings.get("navg"))
-    coeffs = forcing = None
+    coeffs = forcing = holding = None
     if rec is not None and "x" in rec and "phase" in rec and "control" in rec:
         # The ring's `phase` is the board's forcing phase itself, so fitting against it puts
         # response and excitation in the board's frame without any timing assumptions (and
@@ -170,6 +173,7 @@ def _oscillator_point(g, label: str, rec: dict | None, sample_rate: float, a: di
             coeffs, forcing = coef[:1], coef[1]
             noise = rms[:1]
             periods = span
+            holding = _holding(rec, th, settings, freq, "m/s^2")
     if coeffs is None:
         resp = _dataset(g, "fourier/response/mean")
         exc = _dataset(g, "fourier/excitation/mean")
@@ -191,8 +195,21 @@ def _oscillator_point(g, label: str, rec: dict | None, sample_rate: float, a: di
     param = _as_float(a.get("parameter"))
     if not math.isfinite(param):
         param = math.hypot(forcing[1], forcing[1 + K])
-    return Orbit(parameter=param, frequency=freq, stable=_stable_attr(a), coeffs=coeffs,
-                 forcing=forcing, noise=noise, periods=periods, source=label)
+    return Orbit(parameter=param, frequency=freq, **_stability(a, label), coeffs=coeffs,
+                 forcing=forcing, noise=noise, periods=periods, source=label,
+                 holding=holding)
+
+
+def _holding(rec: dict, phi, settings: dict, freq: float, unit: str):
+    """The point's holding control (data.holding) from its raw record, None without the
+    control and target fields; the controller's gains kp, kd from the point's settings."""
+    if "control" not in rec or "target" not in rec:
+        return None
+    gains = (_as_float(settings.get("kp")), _as_float(settings.get("kd")))
+    return measure_holding(phi, rec["x"].astype(float), rec["target"].astype(float),
+                           rec["control"].astype(float), unit,
+                           gains=gains if all(map(math.isfinite, gains)) else None,
+                           omega=2.0 * math.pi * freq)
 
 
 def _stable_attr(a: dict) -> bool | None:
@@ -200,6 +217,16 @@ def _stable_attr(a: dict) -> bool | None:
     if v is None or isinstance(v, str):
         return None
     return bool(v)
+
+
+def _stability(a: dict, label: str) -> dict:
+    """The point's stability and where it came from: its ``stable`` attribute, else the
+    lab's naming convention applied to its key, else unknown."""
+    v = _stable_attr(a)
+    if v is not None:
+        return {"stable": v, "stability_from": "campaign attribute"}
+    v = stability_from_name(label.partition("#")[2].rsplit("/", 1)[-1])
+    return {"stable": v, "stability_from": "" if v is None else "point name"}
 
 
 def _system_of(f: h5py.File, path: str) -> str:

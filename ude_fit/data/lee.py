@@ -5,29 +5,18 @@ from __future__ import annotations
 
 import math
 import os
-import re
 
 import numpy as np
 
 from .._fourier import K, NCOEF, _fit, refine_frequency
+from .holding import measure_holding
+from .stability import stability_from_name
 from .orbit import DataError, Orbit, OrbitDataset, _check_file, _flutter_frame, _one_line
 
 LEE_HEAVE_M_PER_V = 0.18          # heave sensor sensitivity given with the data (m/V)
 LEE_RATE_HZ = 5000.0              # the rig's loop rate, if a file has no usable `time`
 LEE_PITCH_INVALID = 2 * math.pi - 1e-5   # pitch readings at/above this are encoder dropouts
 _MAT5_HEADER = b"MATLAB 5.0 MAT-file"
-
-
-_LEE_STABLE = re.compile(r"^CBC_stable_", re.IGNORECASE)
-_LEE_UNSTABLE = re.compile(r"^CBC_v", re.IGNORECASE)
-
-
-def _lee_stability(name: str) -> bool | None:
-    if _LEE_STABLE.match(name):
-        return True
-    if _LEE_UNSTABLE.match(name):
-        return False
-    return None
 
 
 def _scalar(m: dict, key: str, path: str) -> float:
@@ -85,16 +74,21 @@ def _lee_file(path: str) -> Orbit:
     phi = 2.0 * np.pi * freq * t
     valid = np.column_stack([np.ones(n, dtype=bool), ok])
     coeffs, noise = _fit(phi, np.column_stack([heave, pitch]), K, valid)
-    return Orbit(parameter=V, frequency=freq, stable=_lee_stability(os.path.basename(path)),
+    # the control target (row 1) is in the heave sensor's volts, the control (row 2) in the
+    # actuator's volts (its gain N/V is not in the files)
+    holding = measure_holding(phi, data[0], data[1], data[2], "V")
+    stable = stability_from_name(path)
+    return Orbit(parameter=V, frequency=freq, stable=stable,
+                 stability_from="" if stable is None else "file name",
                  coeffs=_flutter_frame(coeffs), forcing=None, noise=noise,
-                 periods=n / rate * freq, source=path)
+                 periods=n / rate * freq, source=path, holding=holding)
 
 
 def load_lee(path) -> OrbitDataset:
     """lee2020 model-2 CBC points: one .mat file, or a directory of them (all *.mat there,
     in name order). Heave row 0 (V -> m at 0.18 m/V, DC removed), pitch row 3 (unwrapped,
     mean removed); frequency from freq_actual, refined on the record; stability from the
-    file name (CBC_stable_* stable, CBC_v* unstable, anything else unknown)."""
+    file name (:data:`~.stability.NAME_CONVENTIONS`; anything else unknown)."""
     path = os.fspath(path)
     _check_file(path, allow_dir=True)
     if os.path.isdir(path):

@@ -8,6 +8,7 @@ from collections.abc import Iterable
 
 from .campaign import _signature_offset, load_campaign
 from .lee import _MAT5_HEADER, load_lee
+from .stability import StabilityLabels
 from .orbit import COORDINATES, DataError, OrbitDataset, _check_file, _one_line
 
 
@@ -51,11 +52,14 @@ def _kind(path: str) -> str:
     raise DataError(f"{path}: neither a campaign HDF5 file nor a lee2020 .mat file")
 
 
-def load(paths, system: str | None = None) -> OrbitDataset:
+def load(paths, system: str | None = None,
+         stability: StabilityLabels | None = None) -> OrbitDataset:
     """One dataset from campaign files, lee2020 .mat files and directories of them.
 
     All inputs must be of one system (and of `system`, when given); the dataset must not
-    be empty. Every problem is a DataError with a one-line message naming the file.
+    be empty. ``stability``: the user's explicit labels, which win over the file names and
+    campaign attributes. Every problem is a DataError with a one-line message naming the
+    file (or the --stability rule).
     """
     if isinstance(paths, (str, os.PathLike)):
         paths = [paths]
@@ -76,7 +80,8 @@ def load(paths, system: str | None = None) -> OrbitDataset:
     if not orbits:
         raise DataError(f"{', '.join(paths)}: no complete points (no point with complete=True "
                         "and status 'ok')")
-    return OrbitDataset(parts[0].system, orbits, tuple(s for ds in parts for s in ds.sources))
+    ds = OrbitDataset(parts[0].system, orbits, tuple(s for ds in parts for s in ds.sources))
+    return ds if stability is None else stability.apply(ds)
 
 
 

@@ -36,6 +36,7 @@ import numpy as np
 
 from .._fourier import K, NCOEF, _basis, shift_phase
 from .._systems import KINDS, SystemKind, system_kind
+from .holding import Holding
 
 COORDINATES = {name: k.coordinates for name, k in KINDS.items()}
 PARAMETER_NAMES = {name: k.parameter for name, k in KINDS.items()}
@@ -84,6 +85,10 @@ class Orbit:
       units as the coordinate); NaN where there was no raw record.
     periods: how many periods went into the average (NaN if unknown).
     source: "file.h5#key" or "file.mat".
+    stability_from: where ``stable`` came from ("file name", "campaign attribute",
+      "--stability RULE"; "" while unknown).
+    holding: how invasive the control that held the orbit was (:class:`Holding`), None
+      where the file does not record the control.
     """
 
     parameter: float
@@ -94,6 +99,8 @@ class Orbit:
     noise: np.ndarray
     periods: float
     source: str
+    stability_from: str = ""
+    holding: Holding | None = None
 
     def __post_init__(self):
         c = _frozen(self.coeffs)
@@ -184,6 +191,18 @@ class OrbitDataset:
             if o.stable is None:
                 raise DataError(f"{o.source}: stability unknown (select known_stability() first)")
         return np.array([o.stable for o in self.orbits], dtype=bool)
+
+    def unknown_stability(self) -> list[str]:
+        """The sources of the points whose stability is unknown."""
+        return [o.source for o in self.orbits if o.stable is None]
+
+    def point_records(self) -> list[dict]:
+        """Per point, what metrics.json records of its data: where it came from, its
+        stability and that label's origin, and its holding control's figures."""
+        return [{"source": o.source, "parameter": o.parameter, "frequency": o.frequency,
+                 "stable": o.stable, "stability_from": o.stability_from or "unknown",
+                 "holding": None if o.holding is None else o.holding.to_json()}
+                for o in self.orbits]
 
     def amplitudes(self) -> np.ndarray:
         """First-harmonic amplitude sqrt(a1^2 + b1^2) of coordinate 0 (m)."""

@@ -118,8 +118,7 @@ def _better(new: dict, old: dict, min_gain: float) -> bool:
 
 
 def _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap) -> Stage:
-    # as `ude-fit fit` does: an unphysical least-squares estimate gives way to the design
-    # values (recorded)
+    # as `ude-fit fit` does: least squares bounded to physical signs
     mech, ident = identify_mechanistic(data, system, bootstrap=bootstrap, seed=seed)
     return _stage("mechanistic", UDE(mech), ds, data, ranges, ref, ref_source, ident)
 

@@ -105,9 +105,12 @@ class MechanisticModel(eqx.Module):
         raise NotImplementedError
 
     def unphysical(self) -> str:
-        """The fitted values no passive structure has ("name = value, ..."; "" if none)."""
+        """The fitted values no passive structure has, below zero ("name = value, ...";
+        "" if none)."""
+        # zero is where a sign-constrained identification stops (training.identify): a
+        # limit, not a sign error
         return ", ".join(f"{n} = {float(getattr(self, n)):.4g}" for n in self.must_be_positive
-                         if float(getattr(self, n)) <= 0)
+                         if float(getattr(self, n)) < 0)
 
     def parameters(self) -> dict:
         """Every fitted value by name (added effects' coefficients included)."""

@@ -25,6 +25,39 @@ def _backbone(bb: dict | None, unit: str) -> list[str]:
             f"{bb['hopf']:.3f} ± {bb['hopf_std']:.3f} {unit}, {fold}; branch amplitude error "
             f"RMS {pct(bb['branch_rms'])}, max {pct(bb['branch_max'])}, "
             f"{bb['missed']} missed."]
+def _unknown_stability(d: dict) -> list[str]:
+    unknown = d.get("unknown_stability") or []
+    if not unknown:
+        return []
+    return [f"{len(unknown)} point(s) of unknown stability (no `--stability` rule, no "
+            "campaign label, no `CBC_stable_`/`CBC_unstable_`/`CBC_v` name): "
+            + ", ".join(f"`{s}`" for s in unknown) + ". They still constrain the orbit's "
+            "shape in the fit; the stability checks (training and the adequacy test) skip "
+            "them.", ""]
+
+
+def _holding(d: dict) -> list[str]:
+    """The holding control's invasiveness per point (data/holding.py)."""
+    rows = [r for r in d.get("point_records", []) if r.get("holding")]
+    if not rows:
+        return []
+    L = ["### Holding control", "",
+         "How invasive the control that held each point was: its first harmonic (in the "
+         "channel's unit) and that in standard errors of the same channel's noise, that "
+         "relative to the response scaled by the controller's gains (where known), and the "
+         "target's first harmonic against the response's. *Invasive*: a control fundamental "
+         "more than 3 standard errors from zero.", "",
+         "| point | parameter | control 1st harmonic | in standard errors | "
+         "relative to gains x response | target vs response | invasive |",
+         "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        h = r["holding"]
+        rel = h["control_relative_to_gains"]
+        L.append(f"| `{r['source']}` | {r['parameter']:.4g} | {h['control_amplitude']:.3g} "
+                 f"{h['control_unit']} | {h['control_significance']:.3g} | "
+                 f"{'—' if rel is None else pct(rel)} | {pct(h['target_mismatch'])} | "
+                 f"{'yes' if h['invasive'] else 'no'} |")
+    return L + [""]
 
 
 def render(metrics: dict, figures: dict) -> str:
@@ -41,7 +74,7 @@ def render(metrics: dict, figures: dict) -> str:
          f"{d['points'] - d['stable'] - d['unstable']} of unknown stability) from "
          + ", ".join(f"`{s}`" for s in d["sources"]) + ".",
          f"Largest measured amplitude {1e3 * d['max_amplitude']:.3f} mm; amplitude errors are "
-         "relative to it.", "",
+         "relative to it.", ""] + _unknown_stability(d) + _holding(d) + [
          "## Models side by side", "",
          f"UDE: {metrics['approximator'].upper()} correction, training `{metrics['training']}`, "
          f"start {ude['start'] if ude else '—'} of {metrics['starts']['requested']} kept.", "",
@@ -107,10 +140,17 @@ def render(metrics: dict, figures: dict) -> str:
                  f"{'yes' if r.get('adequate') else 'no'} |")
     for d_ in st["dropped"]:
         L.append(f"\nStart {d_['start']} dropped: {d_['reason']}.")
-    L += ["", "## Mechanistic parameters (least squares on the averaged orbits)", "",
-          "| parameter | value | standard error |", "|---|---|---|"]
+    ident = mech.get("identification", {})
+    sources, known = ident.get("sources", {}), ident.get("known", {})
+    L += ["", "## Mechanistic parameters", "",
+          f"Method: {ident.get('method', 'given')}.", "",
+          "| parameter | value | standard error | from |", "|---|---|---|---|"]
     for k, v in mech["parameters"].items():
-        L.append(f"| {k} | {v:.6g} | {mech['std_error'].get(k, float('nan')):.2g} |")
+        L.append(f"| {k} | {v:.6g} | {mech['std_error'].get(k, float('nan')):.2g} | "
+                 f"{sources.get(k, '—')} |")
+    for k, src in sources.items():
+        if k not in mech["parameters"]:
+            L.append(f"| {k} | {known.get(k, float('nan')):.6g} | — | {src} |")
     L += ["", "## Figures", ""]
     for label, name in figures.items():
         L.append(f"![{label}]({name})")

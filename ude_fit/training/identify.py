@@ -12,11 +12,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.optimize import lsq_linear
 
 from .._fourier import K, amplitude, evaluate
 from ..models.library import band_limited, columns, effect, states_of
 from ..models.mechanistic import (FLUTTER_NOMINAL, Drive, Duffing7, FlutterQS, duffing7,
-                                  flutter_qs)
+                                  flutter_qs, model_class)
 from ..models.refined import refined
 from ..models.ude import UDE
 
@@ -86,10 +87,19 @@ def _excitation(fc, omega, t):
 
 
 def identify(data: TrainingData, system: str, base: dict | None = None,
-             effects: tuple = (), *, bootstrap: int = 0, seed: int = 0):
+             effects: tuple = (), *, fixed: dict | None = None, bootstrap: int = 0,
+             seed: int = 0):
     """Least-squares damping and stiffness (aerofoil) or all coefficients (oscillator),
     and the coefficients of any ``effects`` ((key, shape) pairs from the library), which
-    make the result a :class:`~ude_fit._refined.Refined` model.
+    make the result a :class:`~ude_fit._refined.Refined` model. ``base``: the known
+    geometry (the design values where None); ``fixed``: fitted names whose values are
+    given (e.g. by the user's parameter file), left out of the solve.
+
+    The values no passive structure has at or below zero (the model class's
+    ``must_be_positive``: damping and stiffness) are bounded below by zero (bounded least
+    squares): a negative estimate, which noisy derivatives or a missing effect can give,
+    becomes the closest physical one, and ``info["at_bound"]`` names it with its
+    unconstrained estimate (``info["unconstrained"]``).
 
     Returns (mechanistic model, info) with the parameter standard errors (least squares,
     samples taken as independent) and, with ``bootstrap`` > 0, the standard deviations
@@ -97,14 +107,30 @@ def identify(data: TrainingData, system: str, base: dict | None = None,
     samples of one orbit are not independent).
     """
     A, b, names, _ = regression(data, system, base, effects)
-    # each equation weighted by its own force scale, each column by its own size
+    fixed = {k: float(v) for k, v in (fixed or {}).items()}
+    unknown = set(fixed) - set(names)
+    if unknown:
+        raise ValueError(f"identify: no fitted parameter {', '.join(sorted(unknown))}")
+    # each equation weighted by its own force scale (before the given terms move over)
     w_eq = 1.0 / np.sqrt(np.mean(b ** 2, axis=0) + 1e-300)
+    for k, v in fixed.items():
+        b = b - A[:, :, names.index(k)] * v
+    free = [j for j, n in enumerate(names) if n not in fixed]
+    A, names = A[:, :, free], [names[j] for j in free]
     Aw = (A * w_eq[None, :, None]).reshape(-1, A.shape[-1])
     bw = (b * w_eq[None, :]).reshape(-1)
     col = np.sqrt(np.mean(Aw ** 2, axis=0))
     col = np.where(col > 0, col, 1.0)
-    theta_s, *_ = np.linalg.lstsq(Aw / col, bw, rcond=None)
-    theta = theta_s / col
+    positive = set(model_class(system).must_be_positive)
+    lower = np.array([0.0 if n in positive else -np.inf for n in names])
+
+    def solve(M, y):
+        if np.isfinite(lower).any():       # lower bounds unchanged by the column scaling
+            return lsq_linear(M, y, bounds=(lower, np.inf), method="bvls").x
+        return np.linalg.lstsq(M, y, rcond=None)[0]
+
+    theta = solve(Aw / col, bw) / col
+    plain = np.linalg.lstsq(Aw / col, bw, rcond=None)[0] / col
     boot = None
     if bootstrap:
         n_o, n_eq = data.ys.shape[0], A.shape[1]
@@ -113,17 +139,20 @@ def identify(data: TrainingData, system: str, base: dict | None = None,
         draws = []
         for _ in range(bootstrap):
             idx = rows[rng.integers(0, n_o, n_o)].ravel()
-            draws.append(np.linalg.lstsq((Aw / col)[idx], bw[idx], rcond=None)[0] / col)
+            draws.append(solve((Aw / col)[idx], bw[idx]) / col)
         boot = np.asarray(draws).std(axis=0)
     res = bw - Aw @ theta
     dof = max(1, Aw.shape[0] - Aw.shape[1])
     s2 = float(res @ res) / dof
     cov = s2 * np.linalg.pinv((Aw / col).T @ (Aw / col)) / np.outer(col, col)
-    values = dict(zip(names, theta.tolist()))
+    at_bound = [n for n, v, lo in zip(names, theta, lower) if np.isfinite(lo) and v <= lo]
+    values = {**fixed, **dict(zip(names, theta.tolist()))}
     mech = build(system, base, values, effects)
     info = {"parameters": values,
             "std_error": dict(zip(names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist())),
-            "equation_rms": float(np.sqrt(np.mean(res ** 2)))}
+            "equation_rms": float(np.sqrt(np.mean(res ** 2))),
+            "at_bound": at_bound,
+            "unconstrained": {n: float(plain[names.index(n)]) for n in at_bound}}
     if boot is not None:
         info["bootstrap_std"] = dict(zip(names, boot.tolist()))
     return mech, info

@@ -15,6 +15,7 @@ import numpy as np
 
 from .._systems import system_kind
 from ..models.mechanistic import SYSTEMS
+from ..models.parameter_file import MechanisticParameters
 from .penalties import Penalty
 
 APPROXIMATORS = ("nn", "gp")
@@ -140,6 +141,8 @@ class FitOptions:
     mechanistic: str = "equation"     # "equation": least squares; "periodic": then refined
     reference_hopf: float | None = None   # known Hopf airspeed (m/s), for the error figures
     reference_fold: float | None = None   # known fold airspeed (m/s)
+    # the user's values for the mechanistic model (--mechanistic-params FILE.toml)
+    mechanistic_parameters: MechanisticParameters | None = None
 
     def __post_init__(self):
         if self.system not in SYSTEMS:
@@ -161,6 +164,12 @@ class FitOptions:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be a number at least 0, not {v!r}")
+        mp = self.mechanistic_parameters
+        if mp is not None:
+            if not isinstance(mp, MechanisticParameters):
+                raise ValueError(f"mechanistic_parameters must be MechanisticParameters, not "
+                                 f"{mp!r}")
+            MechanisticParameters.of(mp.path, self.system, {**mp.known, **mp.fitted})
         if not isinstance(self.train, TrainConfig):
             raise ValueError(f"train must be a TrainConfig, not {self.train!r}")
         for name in ("reference_hopf", "reference_fold"):
