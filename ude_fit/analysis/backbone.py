@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from .._systems import system_kind
+
 
 @dataclass(frozen=True)
 class HopfBackbone:
@@ -172,7 +174,7 @@ def backbone_of(ds) -> HopfBackbone | None:
     """The backbone of a dataset of self-excited orbits (None for forced data, where the
     amplitude depends on the forcing, not on a growth rate). Orbits of zero amplitude (rest
     logged as a point) say nothing about the curve's shape and are left out of the fit."""
-    if ds.system != "flutter":
+    if not system_kind(ds.system).autonomous:
         return None
     A = ds.amplitudes()
     keep = A > 0

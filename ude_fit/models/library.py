@@ -34,7 +34,7 @@ import numpy as np
 
 from .._fourier import K
 from .forms import EQUATIONS, STATES, parse_located_key
-from .mechanistic import FLUTTER_NOMINAL
+from .mechanistic import model_class
 
 
 HEAVE_FRICTION_VS = 1e-3     # m/s: smoothing of sign(h') (tanh); below the orbits' speeds
@@ -315,13 +315,7 @@ def sample_states(system: str, ys: np.ndarray, param: np.ndarray, omega: np.ndar
     """The mapping S of the formulas from sampled orbits ys (n_orbits, n, >= n_state)."""
     n_o, n, _ = ys.shape
     rep = lambda a: np.repeat(np.asarray(a, float), n)
-    if system == "flutter":
-        S = {"h": ys[:, :, 0].ravel(), "al": ys[:, :, 1].ravel(), "hd": ys[:, :, 2].ravel(),
-             "ad": ys[:, :, 3].ravel(), "V": rep(param),
-             # the known geometry (semichord, elastic-axis position), as the model has it
-             "b": FLUTTER_NOMINAL["b"], "a": FLUTTER_NOMINAL["a"]}
-    else:
-        S = {"x": ys[:, :, 0].ravel(), "xd": ys[:, :, 1].ravel()}
+    S = model_class(system).sample_states(ys.reshape(n_o * n, -1), rep(param))
     S["w"] = rep(omega)
     S["n"] = n
     return S

@@ -116,6 +116,24 @@ class MechanisticModel(eqx.Module):
         """Every fitted value by name (added effects' coefficients included)."""
         return {f: float(getattr(self, f)) for f in self.fitted}
 
+    @classmethod
+    def from_values(cls, values: dict, geometry: dict | None = None) -> "MechanisticModel":
+        """The model with identified ``values`` (names of ``fitted``; others are ignored)
+        on the known ``geometry`` (the design values where None)."""
+        raise NotImplementedError
+
+    @classmethod
+    def equation_error(cls, y, qdd, param, excitation, geometry: dict | None = None):
+        """Equation-error rows on flat samples (N, ...): A (N, n_dof, len(fitted)) and the
+        known part b (N, n_dof) with ``A theta = b``, and the unfitted model."""
+        raise NotImplementedError
+
+    @classmethod
+    def sample_states(cls, ys: np.ndarray, param: np.ndarray) -> dict:
+        """The named states the effect library's formulas read, from flat samples
+        ``ys`` (N, >= 2 n_dof) and their parameter values ``param`` (N,)."""
+        raise NotImplementedError
+
     def stability_indicator(self, M):
         """Positive for a stable periodic orbit with monodromy matrix M, negative once a
         real multiplier passes 1 (smooth in M; no eigen-decomposition)."""
@@ -175,6 +193,33 @@ class FlutterQS(MechanisticModel):
     def nominal(cls, **values) -> "FlutterQS":
         """The design values, with ``values`` in their place."""
         return flutter_qs(**values)
+
+    @classmethod
+    def from_values(cls, values: dict, geometry: dict | None = None) -> "FlutterQS":
+        known = dict(FLUTTER_NOMINAL if geometry is None else geometry)
+        return flutter_qs(**{**known, **{k: v for k, v in values.items() if k in cls.fitted}})
+
+    @classmethod
+    def equation_error(cls, y, qdd, param, excitation, geometry: dict | None = None):
+        mech = flutter_qs(**dict(FLUTTER_NOMINAL if geometry is None else geometry))
+        # the mass and aerodynamic matrices depend on V only: one evaluation per airspeed
+        # (the samples stay in their order)
+        A = np.empty((len(param), cls.n_dof, len(cls.fitted)))
+        b = np.empty((len(param), cls.n_dof))
+        nd = cls.n_dof
+        for V in np.unique(param):
+            m = param == V
+            Am, known = mech.regressors(jnp.asarray(y[m, :nd]), jnp.asarray(y[m, nd:2 * nd]),
+                                        jnp.asarray(qdd[m]), V)
+            A[m] = np.asarray(Am)
+            b[m] = -np.asarray(known)
+        return A, b, mech
+
+    @classmethod
+    def sample_states(cls, ys: np.ndarray, param: np.ndarray) -> dict:
+        return {"h": ys[:, 0], "al": ys[:, 1], "hd": ys[:, 2], "ad": ys[:, 3], "V": param,
+                # the known geometry (semichord, elastic-axis position), as the model has it
+                "b": FLUTTER_NOMINAL["b"], "a": FLUTTER_NOMINAL["a"]}
 
     def mass(self, V):
         pi, b, a, rho = jnp.pi, self.b, self.a, self.rho
@@ -251,6 +296,21 @@ class Duffing7(MechanisticModel):
     @classmethod
     def nominal(cls, **values) -> "Duffing7":
         return duffing7(**values)
+
+    @classmethod
+    def from_values(cls, values: dict, geometry: dict | None = None) -> "Duffing7":
+        return duffing7(**{k: v for k, v in values.items() if k in cls.fitted})
+
+    @classmethod
+    def equation_error(cls, y, qdd, param, excitation, geometry: dict | None = None):
+        mech = duffing7()
+        A, known = mech.regressors(jnp.asarray(y[:, :1]), jnp.asarray(y[:, 1:2]),
+                                   jnp.asarray(qdd), jnp.asarray(excitation))
+        return np.asarray(A), -np.asarray(known), mech
+
+    @classmethod
+    def sample_states(cls, ys: np.ndarray, param: np.ndarray) -> dict:
+        return {"x": ys[:, 0], "xd": ys[:, 1]}
 
     def mass(self, param):
         return jnp.eye(1)

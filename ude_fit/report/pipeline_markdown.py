@@ -17,7 +17,7 @@ def headline_text(h: dict) -> str:
 
 def render_pipeline(doc: dict, fitm: dict, loopm: dict) -> str:
     h = doc["headline"]
-    sysname = {"flutter": "aerofoil (flutter)", "oscillator": "forced oscillator"}[doc["system"]]
+    sysname = system_kind(doc["system"]).title
     lines = [f"# The lab's report: {sysname}", "",
              f"Written by ude_fit {doc['version']} on {doc['written']}; command "
              f"`{doc['command']}`.", "",

@@ -16,8 +16,7 @@ from scipy.optimize import lsq_linear
 
 from .._fourier import K, amplitude, evaluate
 from ..models.library import band_limited, columns, effect, states_of
-from ..models.mechanistic import (FLUTTER_NOMINAL, Drive, Duffing7, FlutterQS, duffing7,
-                                  flutter_qs, model_class)
+from ..models.mechanistic import Drive, model_class
 from ..models.refined import refined
 from ..models.ude import UDE
 
@@ -160,12 +159,7 @@ def identify(data: TrainingData, system: str, base: dict | None = None,
 
 def build(system: str, base: dict | None, values: dict, effects: tuple = ()):
     """The (refined) mechanistic model from identified ``values`` (names as identify's)."""
-    if system == "flutter":
-        base = dict(FLUTTER_NOMINAL if base is None else base)
-        mech = flutter_qs(**{**base, **{k: v for k, v in values.items()
-                                        if k in FlutterQS.fitted}})
-    else:
-        mech = duffing7(**{k: v for k, v in values.items() if k in Duffing7.fitted})
+    mech = model_class(system).from_values(values, base)
     if not effects:
         return mech
     added = []
@@ -182,28 +176,9 @@ def regression(data: TrainingData, system: str, base: dict | None = None,
     the parameter names, and the unfitted mechanistic model. Effect columns enter with a
     minus sign: the model is ``known + A theta = 0`` with the effect on the right-hand side."""
     y, qdd, P, W, FC, t = _flat(data)
-    if system == "flutter":
-        base = dict(FLUTTER_NOMINAL if base is None else base)
-        mech = flutter_qs(**base)
-        nd = 2
-        # the mass and aerodynamic matrices depend on V only: one evaluation per airspeed
-        # (the samples stay in data order)
-        A = np.empty((len(P), 2, len(FlutterQS.fitted)))
-        b = np.empty((len(P), 2))
-        for V in np.unique(P):
-            m = P == V
-            Am, known = mech.regressors(jnp.asarray(y[m, :nd]), jnp.asarray(y[m, nd:2 * nd]),
-                                        jnp.asarray(qdd[m]), V)
-            A[m] = np.asarray(Am)
-            b[m] = -np.asarray(known)
-        names = list(FlutterQS.fitted)
-    else:
-        mech = duffing7()
-        exc = _excitation(FC, W, t)
-        A, known = mech.regressors(jnp.asarray(y[:, :1]), jnp.asarray(y[:, 1:2]),
-                                   jnp.asarray(qdd), jnp.asarray(exc))
-        A, b = np.asarray(A), -np.asarray(known)
-        names = list(Duffing7.fitted)
+    cls = model_class(system)
+    A, b, mech = cls.equation_error(y, qdd, P, _excitation(FC, W, t), base)
+    names = list(cls.fitted)
     # the model's own nonlinear columns (alpha^2, x^3, ...) compared in the band the
     # measured orbits carry, as the effect columns are (_library.band_limited)
     A = band_limited(A.reshape(A.shape[0], -1), data.ys.shape[1]).reshape(A.shape)
@@ -225,7 +200,7 @@ def augment(data: TrainingData, mech) -> TrainingData:
     """``data`` with the hidden states of a refined model appended to every sample: each
     lag's steady periodic solution along the measured orbit (exact by Fourier series), so
     a model with hidden states can start, and be compared, on the data's orbits."""
-    if not getattr(mech, "n_hidden", 0):
+    if not mech.n_hidden:
         return data
     ys = np.asarray(data.ys)
     Z = mech.hidden_states(states_of(data, mech.system)).reshape(ys.shape[0], ys.shape[1], -1)

@@ -184,7 +184,7 @@ class FitOptions:
         if not system_kind(self.system).autonomous and aero:
             raise ValueError("/".join(f"--{p.option}" for p in aero)
                              + " apply to --system flutter only")
-        if self.system != "flutter" and self.train.rest_free:
+        if not system_kind(self.system).autonomous and self.train.rest_free:
             raise ValueError("--rest-free applies to --system flutter only (a forced "
                              "system has no equilibrium at rest)")
         if self.approximator != "nn":
