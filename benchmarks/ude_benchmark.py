@@ -18,6 +18,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import statistics
 import subprocess
 import sys
@@ -80,6 +81,9 @@ def _child(spec: dict) -> dict:
            "orbits": len(ds),
            "adequate": res.metrics["starts"]["adequate"], "starts": opts.starts,
            "seconds_compiling": compiling["seconds"],
+           # CPU time of the process: on a shared, loaded machine the honest figure beside
+           # the wall time (on an idle 2-core machine wall >= cpu / 2)
+           "cpu_seconds": sum(resource.getrusage(resource.RUSAGE_SELF)[:2]),
            "seconds_training": res.metrics["starts"]["train_seconds"],
            "per_start": [{"start": r["start"], "status": r["status"], "loss": r.get("loss"),
                           "branch_rms": (r.get("metrics") or {}).get("branch_rms"),
