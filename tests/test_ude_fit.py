@@ -312,16 +312,13 @@ def test_nan_loss_raises_diverged():
 
 def test_diverged_start_is_dropped_not_kept(flutter_fit, monkeypatch):
     ds = load([flutter_fit["data"]], "flutter")
-    real = fit_module.train_ude
-    calls = []
+    real = fit_module.train_ensemble
 
-    def flaky(*a, **kw):
-        calls.append(1)
-        if len(calls) == 1:
-            raise Diverged("periodic: loss is not finite at Adam step 25")
-        return real(*a, **kw)
+    def first_diverges(*a, **kw):
+        results = real(*a, **kw)
+        return [Diverged("periodic: loss is not finite at Adam step 25")] + results[1:]
 
-    monkeypatch.setattr(fit_module, "train_ude", flaky)
+    monkeypatch.setattr(fit_module, "train_ensemble", first_diverges)
     cfg = TrainConfig(equation_steps=200, adam_steps=50, lbfgs_steps=10)
     res = fit(ds, FitOptions("flutter", starts=2, train=cfg, mechanistic="equation"))
     st = res.metrics["starts"]

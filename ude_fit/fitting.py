@@ -34,7 +34,7 @@ from .training.gp import fit_gp
 from .training.identify import TrainingData, augment, identify, residual_forces, training_data
 from .training.optimise import Diverged
 from .training.options import FitOptions
-from .training.train import refine_mechanistic, train_ude
+from .training.train import refine_mechanistic, train_ensemble
 
 # the figures of a start's metrics its record keeps (with its fold count)
 _RECORD_METRICS = ("branch_rms", "branch_max", "missed", "trajectory_rms", "hopf", "fold")
@@ -49,7 +49,7 @@ class StartRecord:
     status: str = "ok"                  # "ok", or "dropped" (its training diverged)
     reason: str | None = None           # why it was dropped
     seconds: float = 0.0
-    train_seconds: float | None = None
+    train_seconds: float | None = None  # its training; NN starts: its share of the ensemble's
     loss: float | None = None
     info: dict = field(default_factory=dict)
     metrics: dict | None = None         # branch_metrics of its diagram
@@ -113,16 +113,32 @@ def backbone_metrics(ds: OrbitDataset) -> dict | None:
     return {**bb.to_json(), **{k: m[k] for k in ("branch_rms", "branch_max", "missed")}}
 
 
-def _train_start(mech_model, data: TrainingData, opts: FitOptions, k: int, key, progress):
+def _train_starts(mech_model, data: TrainingData, opts: FitOptions, keys, say,
+                  verbose: bool):
+    """Every start's training: per start (UDE, info) or the Diverged that dropped it, and
+    per start its training seconds (the NN starts train together as one vectorised
+    ensemble, so each is charged an equal share of the ensemble's time)."""
     if opts.approximator == "nn":
-        return train_ude(mech_model, data, key=key, cfg=opts.train, training=opts.training,
-                         progress=progress)
-    Z, R = residual_forces(mech_model, data)
-    gp, info = fit_gp(Z, R, seed=opts.seed + k, restarts=opts.gp_restarts)
-    if not np.all(np.isfinite(np.asarray(gp.alpha))):
-        raise Diverged("GP fit produced non-finite weights")
-    return UDE(mech_model.mech, gp.mean_only()), {"training": "accelerations", **{
-        k_: v for k_, v in info.items() if isinstance(v, (int, float, str, bool))}}
+        say(event="stage", stage=f"training {opts.starts} starts together")
+        t0 = time.perf_counter()
+        trained = train_ensemble(
+            mech_model, data, keys=keys, cfg=opts.train, training=opts.training,
+            progress=(lambda **kw: say(event="train", start=None, **kw)) if verbose else None)
+        return trained, [(time.perf_counter() - t0) / opts.starts] * opts.starts
+    trained, seconds = [], []
+    for k in range(opts.starts):
+        t0 = time.perf_counter()
+        Z, R = residual_forces(mech_model, data)
+        gp, info = fit_gp(Z, R, seed=opts.seed + k, restarts=opts.gp_restarts)
+        if np.all(np.isfinite(np.asarray(gp.alpha))):
+            scalars = {name: v for name, v in info.items()
+                       if isinstance(v, (int, float, str, bool))}
+            trained.append((UDE(mech_model.mech, gp.mean_only()),
+                            {"training": "accelerations", **scalars}))
+        else:
+            trained.append(Diverged("GP fit produced non-finite weights"))
+        seconds.append(time.perf_counter() - t0)
+    return trained, seconds
 
 
 def prepare(ds: OrbitDataset, system: str, reference: dict | None, samples: int):
@@ -221,22 +237,21 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
     say(event="model", which="mechanistic", metrics=mech_m)
 
     keys = jax.random.split(jax.random.PRNGKey(opts.seed), opts.starts)
+    trained, train_seconds = _train_starts(mech_model, data, opts, keys, say, verbose)
     starts = []
-    for k in range(opts.starts):
+    for k, result in enumerate(trained):
         t0 = time.perf_counter()
         say(event="start", start=k + 1, starts=opts.starts)
         rec = StartRecord(k + 1, opts.seed, opts.approximator)
-        try:
-            model, info = _train_start(
-                mech_model, data, opts, k, keys[k],
-                (lambda **kw: say(event="train", start=k + 1, **kw)) if verbose else None)
-            rec.train_seconds = time.perf_counter() - t0
+        rec.train_seconds = train_seconds[k]
+        if isinstance(result, Diverged):
+            rec.status, rec.reason = "dropped", str(result)
+        else:
+            model, info = result
             diag, m = _evaluate(model, ds, ranges, scales, ref, ref_source)
             rec.loss, rec.info, rec.metrics = info.get("final_loss"), info, m
             rec.model, rec.diagram = model, diag
-        except Diverged as exc:
-            rec.status, rec.reason = "dropped", str(exc)
-        rec.seconds = time.perf_counter() - t0
+        rec.seconds = train_seconds[k] + time.perf_counter() - t0
         say(event="start_done", start=k + 1, record=rec)
         starts.append(rec)
 
@@ -272,6 +287,8 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                    "dropped": [{"start": s.start, "reason": s.reason}
                                for s in starts if not s.ok],
                    "adequate": int(sum(s.adequate for s in starts)),
+                   "trained_together": opts.approximator == "nn",
+                   "train_seconds": float(sum(s.train_seconds for s in starts)),
                    "kept": None if best is None else best.start,
                    "criterion": {"missed": 0, "below_mechanistic": True,
                                  "factor_of_best": opts.adequacy_factor,

@@ -86,10 +86,13 @@ class Progress:
             now = time.perf_counter()
             if now - self.last >= 2.0 or kw.get("step") == kw.get("steps"):
                 self.last = now
-                who = f"start {kw['start']}" if kw["start"] else "identification"
+                if "lanes" in kw:            # the starts trained together: the best loss
+                    who, loss = f"{kw['lanes']} starts", f"best loss {kw['loss']:.3e}"
+                else:
+                    who = f"start {kw['start']}" if kw["start"] else "identification"
+                    loss = f"loss {kw['loss']:.3e}"
                 self.say(f"  {who} {kw['stage']} {kw['optimiser']} step "
-                         f"{kw['step']}/{kw['steps']} loss {kw['loss']:.3e} "
-                         f"({kw['elapsed']:.1f} s)")
+                         f"{kw['step']}/{kw['steps']} {loss} ({kw['elapsed']:.1f} s)")
         elif event == "step":
             r = kw["record"]
             self.say(f"step {r['step']}: {r.get('name') or r.get('candidate')} "

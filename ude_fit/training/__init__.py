@@ -7,9 +7,10 @@ from .optimise import Diverged, minimize
 from .options import FitOptions, TrainConfig
 from .penalties import (PENALTIES, EnergyRising, EnergyShape, EquilibriumPenalty, Penalty,
                         RestStability, SmoothnessPenalty, WeightDecay)
-from .train import refine_mechanistic, train_ude
+from .train import refine_mechanistic, train_ensemble, train_ude
 
 __all__ = ["PENALTIES", "Diverged", "EnergyRising", "EnergyShape", "EquilibriumPenalty",
            "FitOptions", "GPCorrection", "Penalty", "RestStability", "SmoothnessPenalty",
            "TrainConfig", "TrainingData", "WeightDecay", "fit_gp", "identify", "minimize",
-           "refine_mechanistic", "residual_forces", "train_ude", "training_data"]
+           "refine_mechanistic", "residual_forces", "train_ensemble", "train_ude",
+           "training_data"]

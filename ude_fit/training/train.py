@@ -16,8 +16,8 @@ Three losses, used in this order by :func:`train_ude`:
   crosses 1, as it does at a fold: smooth and with no eigen-decomposition.
 
 Optimisation: Adam, then L-BFGS (optax), all float64. Losses are module-level
-functions of (trainable, static, data), compiled once per problem structure and
-shared by every random start.
+functions of (trainable, static, data), compiled once per problem structure.
+:func:`train_ensemble` trains many random starts at once, vmapped (:mod:`.optimise`).
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ from ..models.corrections import (MLPCorrection, PolynomialParamCorrection,
 from ..models.flow import diffrax_samples, rk4_orbit
 from ..models.ude import UDE
 from .identify import TrainingData, residual_forces
-from .optimise import minimize
+from .optimise import Diverged, descend, minimize
 from .options import TrainConfig
 from .penalties import penalty_sum, regularity_points
 
@@ -176,39 +176,77 @@ def refine_mechanistic(model: UDE, data: TrainingData, *, cfg: TrainConfig, prog
     return UDE(refined), {"loss": v}
 
 
+def _stack(trees):
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
+
+
+def _lane(tree, i: int):
+    return jax.tree_util.tree_map(lambda x: x[i], tree)
+
+
 def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training: str,
               progress=None) -> tuple[UDE, dict]:
-    """Fit a fresh MLP correction on top of ``model.mech``; returns (UDE, info)."""
+    """Fit a fresh MLP correction on top of ``model.mech``; returns (UDE, info); raises
+    :class:`~.optimise.Diverged` if its loss goes non-finite."""
+    (result,) = _train(model, data, [key], cfg, training, progress, ensemble=False)
+    if isinstance(result, Diverged):
+        raise result
+    return result
+
+
+def train_ensemble(model: UDE, data: TrainingData, *, keys, cfg: TrainConfig,
+                   training: str, progress=None) -> list:
+    """One fresh MLP correction per key, trained together as one vectorised ensemble
+    (every stage's steps vmapped over the starts, optimiser state included): start k
+    is what :func:`train_ude` gives with ``keys[k]``, to rounding. Returns, per key,
+    (UDE, info) or the :class:`~.optimise.Diverged` that dropped it."""
+    return _train(model, data, list(keys), cfg, training, progress, ensemble=True)
+
+
+def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, training: str,
+           progress, ensemble: bool) -> list:
     require_float64("train_ude")
+    if training not in ("trajectory", "periodic", "equation"):
+        raise ValueError(f"unknown training mode {training!r} (trajectory, periodic, equation)")
     cfg = cfg.for_system(model.system)
-    corr = new_correction(model, data, key, cfg)
-    trainable, static = eqx.partition(corr, _trainable_spec(corr))
+    # the starts differ only in their network's weights; scaling and structure are shared
+    parts = [eqx.partition(c, _trainable_spec(c))
+             for c in (new_correction(model, data, k, cfg) for k in keys)]
+    static = parts[0][1]
+    lanes = len(keys) if ensemble else None
+    lead = (len(keys),) if ensemble else ()
+    params = {"corr": _stack([p for p, _ in parts]) if ensemble else parts[0][0]}
     mech = model.mech
-    info = {"training": training}
     Z, R = residual_forces(UDE(mech), data)
-    params = {"corr": trainable}
     reg = regularity_points(data) if cfg.needs_points() else None
-    params, v = minimize(equation_loss, params,
-                         (static, mech, jnp.asarray(Z), jnp.asarray(R), cfg.penalties, reg),
-                         adam_steps=cfg.equation_steps, lbfgs_steps=cfg.equation_lbfgs_steps,
-                         lr=1e-2, progress=progress, stage="equation")
-    info["equation_loss"] = v
+    params, eq_loss, failed = descend(
+        equation_loss, params, (static, mech, jnp.asarray(Z), jnp.asarray(R), cfg.penalties,
+                                reg),
+        lanes=lanes, adam_steps=cfg.equation_steps, lbfgs_steps=cfg.equation_lbfgs_steps,
+        lr=1e-2, progress=progress, stage="equation")
+    loss = eq_loss
     if training == "trajectory":
-        params, v = minimize(trajectory_loss, params,
-                             (static, mech, data, cfg.substeps, cfg.penalties, reg),
-                             adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
-                             lr=cfg.learning_rate, progress=progress, stage="trajectory")
+        params, loss, failed = descend(
+            trajectory_loss, params, (static, mech, data, cfg.substeps, cfg.penalties, reg),
+            lanes=lanes, adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
+            lr=cfg.learning_rate, failed=failed, progress=progress, stage="trajectory")
     elif training == "periodic":
         # initial states and periods as scaled offsets from the measured ones, so one
         # Adam step size suits metres, radians and seconds alike
-        params = {"corr": params["corr"], "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
+        params = {"corr": params["corr"], "dy0": jnp.zeros(lead + data.ys[:, 0, :].shape)}
         if model.mech.autonomous:
-            params["dT"] = jnp.zeros(data.period.shape)
-        params, v = minimize(periodic_loss, params, (static, mech, data, cfg, reg),
-                             adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
-                             lr=cfg.learning_rate, progress=progress, stage="periodic")
-    elif training != "equation":
-        raise ValueError(f"unknown training mode {training!r} (trajectory, periodic, equation)")
-    info["final_loss"] = v
-    return UDE(mech, eqx.combine(params["corr"], static)), info
-
+            params["dT"] = jnp.zeros(lead + data.period.shape)
+        params, loss, failed = descend(
+            periodic_loss, params, (static, mech, data, cfg, reg), lanes=lanes,
+            adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps, lr=cfg.learning_rate,
+            failed=failed, progress=progress, stage="periodic")
+    out = []
+    for i in range(len(keys)):
+        if i in failed:
+            out.append(Diverged(failed[i]))
+            continue
+        corr = _lane(params["corr"], i) if ensemble else params["corr"]
+        out.append((UDE(mech, eqx.combine(corr, static)),
+                    {"training": training, "equation_loss": float(eq_loss[i]),
+                     "final_loss": float(loss[i])}))
+    return out
