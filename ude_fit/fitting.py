@@ -22,10 +22,10 @@ import jax
 import numpy as np
 
 from ._precision import require_float64
-from .analysis.backbone import HopfBackbone, backbone_of
+from .analysis.backbone import BackboneFit, backbone_of
 from .analysis.adequacy import data_scatter, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
-from .analysis.metrics_type import BranchErrors, ModelMetrics
+from .analysis.metrics_type import ModelMetrics
 from .data.estimates import estimate_from_data
 from .data.orbit import DataError, OrbitDataset
 from .models.mechanistic import FLUTTER_NOMINAL, parameters_of
@@ -62,6 +62,11 @@ class StartRecord:
     def ok(self) -> bool:
         return self.status == "ok"
 
+    @property
+    def completed(self) -> bool:
+        """It trained, and its diagram has an orbit at some measured point."""
+        return self.ok and self.metrics.summary.branch_rms is not None
+
     def to_json(self) -> dict:
         """The record as metrics.json keeps it: no model, the scalar training info, the
         headline metrics and the fold count."""
@@ -73,24 +78,10 @@ class StartRecord:
                    info={k: v for k, v in self.info.items()
                          if isinstance(v, (int, float, str, bool))},
                    seconds=self.seconds, adequate=self.adequate,
-                   metrics={**_pick(self.metrics.to_json(), _RECORD_METRICS),
+                   metrics={**{k: v for k, v in self.metrics.to_json().items()
+                               if k in _RECORD_METRICS},
                             "fold_count": self.metrics.fold_count})
         return out
-
-
-def _pick(d: dict, keys) -> dict:
-    return {k: d[k] for k in keys}
-
-
-@dataclass(frozen=True)
-class Backbone:
-    """The Hopf normal-form backbone fitted to the points, with its branch errors."""
-    curve: HopfBackbone
-    errors: BranchErrors
-
-    def to_json(self) -> dict:
-        return {**self.curve.to_json(),
-                **_pick(self.errors.summary.to_json(), ("branch_rms", "branch_max", "missed"))}
 
 
 @dataclass
@@ -109,13 +100,8 @@ class FitResult:
     kept: StartRecord | None = None
     data: dict = field(default_factory=dict)        # what metrics.json records of the data
     fold_required: bool = False     # the data needs a fold (see adequacy.needs_fold)
-    backbone: Backbone | None = None
+    backbone: BackboneFit | None = None
     seconds: float = 0.0
-
-    @property
-    def completed(self) -> list[StartRecord]:
-        """The starts that trained and whose diagram has an orbit at some measured point."""
-        return [s for s in self.starts if s.ok and s.metrics.summary.branch_rms is not None]
 
     @property
     def adequate(self) -> int:
@@ -138,7 +124,7 @@ class FitResult:
             "ude": None if best is None else {**best.metrics.to_json(), "start": best.start,
                                               "adequate": best.adequate},
             "starts": {"requested": opts.starts,
-                       "completed": len(self.completed),
+                       "completed": sum(s.completed for s in self.starts),
                        "dropped": [{"start": s.start, "reason": s.reason}
                                    for s in self.starts if not s.ok],
                        "adequate": self.adequate,
@@ -168,15 +154,15 @@ def _relative_noise(ds: OrbitDataset) -> float | None:
     return float(np.median(r)) if r.size else None
 
 
-def backbone_metrics(ds: OrbitDataset) -> Backbone | None:
+def backbone_metrics(ds: OrbitDataset) -> BackboneFit | None:
     """The Hopf normal-form backbone fitted to the points (a third model of the data, beside
     the mechanistic model and the UDE), with its branch errors; None where it does not
     apply (forced data) or the points are too few."""
     bb = backbone_of(ds)
     if bb is None:
         return None
-    return Backbone(bb, bb.metrics(ds.parameters(), ds.amplitudes(),
-                                   [o.stable for o in ds.orbits]))
+    return BackboneFit(bb, bb.metrics(ds.parameters(), ds.amplitudes(),
+                                      [o.stable for o in ds.orbits]))
 
 
 def _train_start(mech_model, data: TrainingData, opts: FitOptions, k: int, key, progress):
@@ -308,7 +294,7 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
 
     scatter = data_scatter(ds)
     fold_needed = needs_fold(ds)
-    ok = [s for s in starts if s.ok and s.metrics.summary.branch_rms is not None]
+    ok = [s for s in starts if s.completed]
     for s, a in zip(starts, judge_starts([s.metrics for s in starts], mech_m, opts, scatter,
                                          fold_needed)):
         s.adequate = a

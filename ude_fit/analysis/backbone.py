@@ -124,6 +124,19 @@ class HopfBackbone:
                 "growth_sign": self.m_sign, "residual_std": self.residual_std}
 
 
+@dataclass(frozen=True)
+class BackboneFit:
+    """A backbone fitted to measured points, with its branch errors against them."""
+    curve: HopfBackbone
+    errors: BranchErrors
+
+    def to_json(self) -> dict:
+        """The curve and its headline figures (as metrics.json's ``backbone``)."""
+        s = self.errors.summary
+        return {**self.curve.to_json(), "branch_rms": s.branch_rms,
+                "branch_max": s.branch_max, "missed": s.missed}
+
+
 def fit_backbone(V, A, stable=None) -> HopfBackbone | None:
     """The backbone through measured orbits (airspeeds ``V``, amplitudes ``A`` > 0, stability
     True/False/None each); None for fewer than 4 orbits or fewer than 3 distinct amplitudes.
