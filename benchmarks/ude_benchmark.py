@@ -69,31 +69,33 @@ def _child(spec: dict) -> dict:
 
     def progress(event, **kw):
         if event == "start_done" and "t" not in first_ok:
-            m = kw["record"].metrics or {}
-            if m.get("branch_rms") is not None and m["branch_rms"] <= 0.01 and m["missed"] == 0:
+            m = kw["record"].metrics
+            if m is not None and m.summary.branch_rms is not None \
+                    and m.summary.branch_rms <= 0.01 and m.summary.missed == 0:
                 first_ok["t"] = time.perf_counter() - t0
                 first_ok["start"] = kw["record"].start
 
     res = fit(ds, opts, reference=spec["truth"], progress=progress)
+    doc = res.to_json()
     total = time.perf_counter() - t0
     out = {"seconds_total": total, "seconds_import": t0 - t_import,
            "seconds_to_first_1pct": first_ok.get("t"), "first_1pct_start": first_ok.get("start"),
            "orbits": len(ds),
-           "adequate": res.metrics["starts"]["adequate"], "starts": opts.starts,
+           "adequate": doc["starts"]["adequate"], "starts": opts.starts,
            "seconds_compiling": compiling["seconds"],
            # CPU time of the process: on a shared, loaded machine the honest figure beside
            # the wall time (on an idle 2-core machine wall >= cpu / 2)
            "cpu_seconds": sum(resource.getrusage(resource.RUSAGE_SELF)[:2]),
-           "seconds_training": res.metrics["starts"]["train_seconds"],
+           "seconds_training": doc["starts"]["train_seconds"],
            "per_start": [{"start": r["start"], "status": r["status"], "loss": r.get("loss"),
                           "branch_rms": (r.get("metrics") or {}).get("branch_rms"),
                           "missed": (r.get("metrics") or {}).get("missed"),
                           "adequate": r["adequate"],
                           "seconds_diagram": (r["seconds"] - r["train_seconds"]
                                               if r.get("train_seconds") is not None else None)}
-                         for r in res.metrics["starts"]["records"]]}
+                         for r in doc["starts"]["records"]]}
     for side in ("mechanistic", "ude"):
-        m = res.metrics[side] or {}
+        m = doc[side] or {}
         out[side] = {"branch_rms": m.get("branch_rms"), "branch_max": m.get("branch_max"),
                      "missed": m.get("missed"), "trajectory_rms": m.get("trajectory_rms"),
                      "hopf": (m.get("hopf") or {}).get("model"),

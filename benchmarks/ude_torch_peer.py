@@ -82,7 +82,7 @@ def evaluate(model, ds, data, ranges) -> dict:
     scales = np.asarray(data.y_scale)
     t0 = time.perf_counter()
     diagram = trace_diagram(model, ranges, scales)
-    m = branch_metrics(model, diagram, ds, scales=scales)
+    m = branch_metrics(model, diagram, ds, scales=scales).summary.to_json()
     loc = locations(diagram)
     return {"branch_rms": m["branch_rms"], "branch_max": m["branch_max"], "missed": m["missed"],
             "trajectory_rms": m["trajectory_rms"], "hopf": loc["hopf"], "fold": loc["fold"],

@@ -41,8 +41,8 @@ def test_exact_normal_form_points_give_back_its_hopf_fold_and_stability():
         assert VH - (A3 * amp ** 2 + B5 * amp ** 4) / M == pytest.approx(v, abs=1e-6)
     assert bb.orbits_at(vf - 0.1) == []                    # below the fold: rest only
     assert len(bb.orbits_at(VH + 0.1)) == 1                # beyond the Hopf point: one
-    m = bb.metrics(V, r, stable)
-    assert m["missed"] == 0 and m["branch_rms"] < 1e-6
+    m = bb.metrics(V, r, stable).summary
+    assert m.missed == 0 and m.branch_rms < 1e-6
 
 
 def test_noisy_points_the_truth_within_the_reported_uncertainty():

@@ -321,7 +321,7 @@ def test_diverged_start_is_dropped_not_kept(flutter_fit, monkeypatch):
     monkeypatch.setattr(fit_module, "train_ensemble", first_diverges)
     cfg = TrainConfig(equation_steps=200, adam_steps=50, lbfgs_steps=10)
     res = fit(ds, FitOptions("flutter", starts=2, train=cfg, mechanistic="equation"))
-    st = res.metrics["starts"]
+    st = res.to_json()["starts"]
     assert st["dropped"] == [{"start": 1, "reason": "periodic: loss is not finite at Adam step 25"}]
     assert st["kept"] == 2 and st["completed"] == 1
     assert not st["records"][0]["adequate"]
@@ -460,15 +460,24 @@ def test_data_scatter_is_the_residual_standard_deviation_about_quadratics():
     assert data_scatter(ds) == pytest.approx(np.sqrt(np.sum(e ** 2) / 5) / a_max, rel=1e-6)
 
 
+def _figures(rms, folds, missed=0):
+    """A self-excited model's metrics with only what adequacy reads: the branch RMS, the
+    missed count and the folds (no points, no isolas)."""
+    from ude_fit.analysis.metrics_type import (BifurcationLocation, BranchErrors,
+                                               BranchSummary, ModelMetrics, PointError)
+    points = [PointError(20.0, 2.4, 0.05, None)] * missed
+    return ModelMetrics(BranchErrors(BranchSummary(rms, None, rms, missed, None), points),
+                        BifurcationLocation(None), BifurcationLocation(None), folds, 0,
+                        ())
+
+
 def test_a_start_that_snakes_through_the_points_does_not_set_the_bar():
     """Within twice the best start's error: the best *credible* start's. A start with 11
     folds fits the points closer than a smooth diagram can, and is not adequate itself."""
     from ude_fit.analysis.adequacy import judge_starts
 
-    mech = {"branch_rms": 0.15, "missed": 3, "folds": [15.8], "isola_folds": []}
-
-    def start(rms, folds, missed=0):
-        return {"branch_rms": rms, "missed": missed, "folds": folds, "isola_folds": []}
+    mech = _figures(0.15, [15.8], missed=3)
+    start = _figures
 
     snake = start(0.006, [20.1, 20.4, 21.0, 22.9, 23.3, 23.4], )
     smooth = start(0.035, [20.4, 25.9])
@@ -569,9 +578,9 @@ def test_aerofoil_data_with_both_stabilities_needs_a_fold():
     from ude_fit import Orbit, OrbitDataset
     from ude_fit.analysis.adequacy import judge_starts, needs_fold
 
-    mech = {"branch_rms": 0.15, "missed": 0, "folds": [15.8], "isola_folds": []}
-    no_fold = {"branch_rms": 0.02, "missed": 0, "folds": [], "isola_folds": []}
-    one_fold = {"branch_rms": 0.03, "missed": 0, "folds": [20.3], "isola_folds": []}
+    mech = _figures(0.15, [15.8])
+    no_fold = _figures(0.02, [])
+    one_fold = _figures(0.03, [20.3])
     opts = FitOptions(system="flutter")
     assert judge_starts([no_fold, one_fold], mech, opts, fold_required=True) == [False, True]
     assert judge_starts([no_fold, one_fold], mech, opts) == [True, True]

@@ -221,11 +221,11 @@ def test_negative_least_squares_damping_is_bounded_not_replaced(negative_damping
     _, m = _evaluate(UDE(mech), negative_damping, ranges, scales, ref, src)
     # the old fall-back, the simulated rig's design values (no negative damping at all)
     _, design = _evaluate(UDE(mech.nominal()), negative_damping, ranges, scales, ref, src)
-    assert m["hopf"]["model"] is not None, m
-    assert (design["hopf"]["model"] is None
-            or abs(m["hopf"]["error"]) < abs(design["hopf"]["error"])), (m, design)
-    assert m["missed"] < len(negative_damping), m
-    assert m["missed"] <= design["missed"], (m, design)
+    assert m.hopf.model is not None, m
+    assert (design.hopf.model is None
+            or abs(m.hopf.error) < abs(design.hopf.error)), (m, design)
+    assert m.summary.missed < len(negative_damping), m
+    assert m.summary.missed <= design.summary.missed, (m, design)
 
 
 def test_parameter_file_values_are_used_and_said_so(negative_damping, tmp_path):

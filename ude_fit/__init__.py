@@ -14,7 +14,8 @@ command line switches float64 on; a library user calls
 jobs (:func:`fit`, :func:`train_ude`, :func:`run_pipeline`) refuse to run without it.
 """
 
-from .analysis import (Branch, Equilibria, branch_metrics, diagram_ranges,
+from .analysis import (BifurcationLocation, Branch, BranchErrors, BranchSummary, Equilibria,
+                       ModelMetrics, PointError, branch_metrics, diagram_ranges,
                        equilibrium_branch, hopf_point, orbit_at, trace_diagram, trace_flutter,
                        trace_forced)
 from .data import (DataError, Orbit, OrbitDataset, estimate_from_data, load,
@@ -30,10 +31,10 @@ from .training import (Diverged, EnergyRising, EnergyShape, EquilibriumPenalty,
                        residual_forces, train_ude, training_data)
 
 __all__ = [
-    "Branch", "DataError", "Diverged", "Drive", "Duffing7", "EnergyRising", "EnergyShape",
+    "BifurcationLocation", "Branch", "BranchErrors", "BranchSummary", "DataError", "Diverged", "Drive", "Duffing7", "EnergyRising", "EnergyShape",
     "Equilibria", "EquilibriumPenalty", "FitOptions", "FitResult", "FlutterQS",
-    "GPCorrection", "MLPCorrection", "Orbit", "OrbitDataset", "PipelineOptions",
-    "PipelineResult", "RestStability",
+    "GPCorrection", "MLPCorrection", "ModelMetrics", "Orbit", "OrbitDataset", "PipelineOptions",
+    "PipelineResult", "PointError", "RestStability",
     "SmoothnessPenalty", "StartRecord", "TrainConfig", "TrainingData", "UDE", "WeightDecay",
     "branch_metrics", "diagram_ranges", "duffing7", "equilibrium_branch",
     "estimate_from_data", "fit", "fit_gp", "flutter_qs", "hopf_point", "identify", "load",

@@ -22,9 +22,10 @@ import jax
 import numpy as np
 
 from ._precision import require_float64
-from .analysis.backbone import backbone_of
-from .analysis.adequacy import data_scatter, fold_count, judge_starts, needs_fold
+from .analysis.backbone import BackboneFit, backbone_of
+from .analysis.adequacy import data_scatter, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
+from .analysis.metrics_type import ModelMetrics
 from .data.estimates import estimate_from_data
 from .data.orbit import DataError, OrbitDataset
 from .models.mechanistic import FLUTTER_NOMINAL, parameters_of
@@ -52,7 +53,7 @@ class StartRecord:
     train_seconds: float | None = None  # its training; NN starts: its share of the ensemble's
     loss: float | None = None
     info: dict = field(default_factory=dict)
-    metrics: dict | None = None         # branch_metrics of its diagram
+    metrics: ModelMetrics | None = None  # its diagram against the data
     adequate: bool = False
     model: UDE | None = None
     diagram: dict | None = None
@@ -60,6 +61,11 @@ class StartRecord:
     @property
     def ok(self) -> bool:
         return self.status == "ok"
+
+    @property
+    def completed(self) -> bool:
+        """It trained, and its diagram has an orbit at some measured point."""
+        return self.ok and self.metrics.summary.branch_rms is not None
 
     def to_json(self) -> dict:
         """The record as metrics.json keeps it: no model, the scalar training info, the
@@ -72,22 +78,70 @@ class StartRecord:
                    info={k: v for k, v in self.info.items()
                          if isinstance(v, (int, float, str, bool))},
                    seconds=self.seconds, adequate=self.adequate,
-                   metrics={**{k: self.metrics[k] for k in _RECORD_METRICS},
-                            "fold_count": fold_count(self.metrics)})
+                   metrics={**{k: v for k, v in self.metrics.to_json().items()
+                               if k in _RECORD_METRICS},
+                            "fold_count": self.metrics.fold_count})
         return out
 
 
 @dataclass
 class FitResult:
+    """Both models, their diagrams and metrics, every start and the one kept (None when no
+    start completed). :meth:`to_json` is the document metrics.json holds."""
     options: FitOptions
     mechanistic: UDE
     ude: UDE | None
     identification: dict
     diagrams: dict              # {"mechanistic": {...}, "ude": {...}}: key -> Branch
-    metrics: dict               # {"mechanistic", "ude", "starts", "data", ...}
+    mechanistic_metrics: ModelMetrics
     scales: np.ndarray
     ranges: dict
     starts: list[StartRecord] = field(default_factory=list)
+    kept: StartRecord | None = None
+    data: dict = field(default_factory=dict)        # what metrics.json records of the data
+    fold_required: bool = False     # the data needs a fold (see adequacy.needs_fold)
+    backbone: BackboneFit | None = None
+    seconds: float = 0.0
+
+    @property
+    def adequate(self) -> int:
+        """How many starts are adequate."""
+        return int(sum(s.adequate for s in self.starts))
+
+    def to_json(self) -> dict:
+        """The metrics document (metrics.json less provenance, options, figures)."""
+        opts, ident, best = self.options, self.identification, self.kept
+        return {
+            "system": opts.system,
+            "approximator": opts.approximator,
+            "training": opts.training if opts.approximator == "nn" else "accelerations",
+            "data": self.data,
+            "mechanistic": {**self.mechanistic_metrics.to_json(),
+                            "parameters": ident["parameters"],
+                            "identification": {k: v for k, v in ident.items()
+                                               if k not in ("parameters", "std_error")},
+                            "std_error": ident["std_error"]},
+            "ude": None if best is None else {**best.metrics.to_json(), "start": best.start,
+                                              "adequate": best.adequate},
+            "starts": {"requested": opts.starts,
+                       "completed": sum(s.completed for s in self.starts),
+                       "dropped": [{"start": s.start, "reason": s.reason}
+                                   for s in self.starts if not s.ok],
+                       "adequate": self.adequate,
+                       "trained_together": opts.approximator == "nn",
+                       "train_seconds": float(sum(s.train_seconds or 0.0 for s in self.starts)),
+                       "kept": None if best is None else best.start,
+                       "criterion": {"missed": 0, "below_mechanistic": True,
+                                     "factor_of_best": opts.adequacy_factor,
+                                     "floor": opts.adequacy_floor,
+                                     "data_scatter": self.data["scatter"],
+                                     "max_extra_folds_per_family": 1,
+                                     "fold_required": self.fold_required},
+                       "records": [s.to_json() for s in self.starts]},
+            "backbone": None if self.backbone is None else self.backbone.to_json(),
+            "ranges": self.ranges,
+            "seconds": self.seconds,
+        }
 
 
 # ---------------------------------------------------------------------------------------
@@ -102,15 +156,15 @@ def _relative_noise(ds: OrbitDataset) -> float | None:
     return float(np.median(r)) if r.size else None
 
 
-def backbone_metrics(ds: OrbitDataset) -> dict | None:
+def backbone_metrics(ds: OrbitDataset) -> BackboneFit | None:
     """The Hopf normal-form backbone fitted to the points (a third model of the data, beside
     the mechanistic model and the UDE), with its branch errors; None where it does not
     apply (forced data) or the points are too few."""
     bb = backbone_of(ds)
     if bb is None:
         return None
-    m = bb.metrics(ds.parameters(), ds.amplitudes(), [o.stable for o in ds.orbits])
-    return {**bb.to_json(), **{k: m[k] for k in ("branch_rms", "branch_max", "missed")}}
+    return BackboneFit(bb, bb.metrics(ds.parameters(), ds.amplitudes(),
+                                      [o.stable for o in ds.orbits]))
 
 
 def _train_starts(mech_model, data: TrainingData, opts: FitOptions, keys, say,
@@ -257,52 +311,25 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
 
     scatter = data_scatter(ds)
     fold_needed = needs_fold(ds)
-    ok = [s for s in starts if s.ok and s.metrics["branch_rms"] is not None]
+    ok = [s for s in starts if s.completed]
     for s, a in zip(starts, judge_starts([s.metrics for s in starts], mech_m, opts, scatter,
                                          fold_needed)):
         s.adequate = a
     best = None
     if ok:
-        best = min(ok, key=lambda s: (not s.adequate, s.metrics["missed"],
-                                      s.metrics["branch_rms"]))
-    metrics = {
-        "system": opts.system,
-        "approximator": opts.approximator,
-        "training": opts.training if opts.approximator == "nn" else "accelerations",
-        "data": {"points": len(ds), "sources": list(ds.sources),
-                 "stable": int(sum(1 for o in ds if o.stable is True)),
-                 "unstable": int(sum(1 for o in ds if o.stable is False)),
-                 "max_amplitude": float(ds.amplitudes().max()),
-                 "noise_rms": _relative_noise(ds), "scatter": scatter,
-                 "unknown_stability": ds.unknown_stability(),
-                 "point_records": ds.point_records()},
-        "mechanistic": {**mech_m, "parameters": ident["parameters"],
-                        "identification": {k: v for k, v in ident.items()
-                                           if k not in ("parameters", "std_error")},
-                        "std_error": ident["std_error"]},
-        "ude": None if best is None else {**best.metrics, "start": best.start,
-                                          "adequate": best.adequate},
-        "starts": {"requested": opts.starts,
-                   "completed": len(ok),
-                   "dropped": [{"start": s.start, "reason": s.reason}
-                               for s in starts if not s.ok],
-                   "adequate": int(sum(s.adequate for s in starts)),
-                   "trained_together": opts.approximator == "nn",
-                   "train_seconds": float(sum(s.train_seconds for s in starts)),
-                   "kept": None if best is None else best.start,
-                   "criterion": {"missed": 0, "below_mechanistic": True,
-                                 "factor_of_best": opts.adequacy_factor,
-                                 "floor": opts.adequacy_floor,
-                                 "data_scatter": scatter,
-                                 "max_extra_folds_per_family": 1,
-                                 "fold_required": fold_needed},
-                   "records": [s.to_json() for s in starts]},
-        "backbone": backbone_metrics(ds),
-        "ranges": ranges,
-        "seconds": time.perf_counter() - t_start,
-    }
+        best = min(ok, key=lambda s: (not s.adequate, s.metrics.summary.missed,
+                                      s.metrics.summary.branch_rms))
+    data_record = {"points": len(ds), "sources": list(ds.sources),
+                   "stable": int(sum(1 for o in ds if o.stable is True)),
+                   "unstable": int(sum(1 for o in ds if o.stable is False)),
+                   "max_amplitude": float(ds.amplitudes().max()),
+                   "noise_rms": _relative_noise(ds), "scatter": scatter,
+                   "unknown_stability": ds.unknown_stability(),
+                   "point_records": ds.point_records()}
     return FitResult(options=opts, mechanistic=mech_model,
                      ude=None if best is None else best.model, identification=ident,
                      diagrams={"mechanistic": mech_diag,
                                "ude": None if best is None else best.diagram},
-                     metrics=metrics, scales=scales, ranges=ranges, starts=starts)
+                     mechanistic_metrics=mech_m, scales=scales, ranges=ranges, starts=starts,
+                     kept=best, data=data_record, fold_required=fold_needed,
+                     backbone=backbone_metrics(ds), seconds=time.perf_counter() - t_start)

@@ -8,6 +8,7 @@ import numpy as np
 
 from ..data.orbit import OrbitDataset
 from ..training.options import FitOptions
+from .metrics_type import ModelMetrics
 
 
 def data_scatter(ds: OrbitDataset) -> float:
@@ -35,36 +36,29 @@ def data_scatter(ds: OrbitDataset) -> float:
     return float(np.sqrt(np.sum(np.square(res)) / dof) / a_max) if dof > 0 else 0.0
 
 
-def fold_count(m: dict) -> int:
-    """Folds in a model's diagram (every branch, every frequency)."""
-    f = m.get("folds") or []
-    n = sum(len(v) for v in f.values()) if isinstance(f, dict) else len(f)
-    return n + len(m.get("isola_folds") or [])
-
-
-def _credible(m, mech_m, fold_required: bool = False) -> bool:
+def _credible(m: ModelMetrics | None, mech_m: ModelMetrics, fold_required: bool = False) -> bool:
     """Every check of adequacy but the comparison with the other starts: nothing missed,
     no more folds than allowed (and one at least where the data needs one), below the
     mechanistic model's error (at every frequency)."""
-    if m is None or m["branch_rms"] is None or m["missed"] > 0:
+    if m is None or m.summary.branch_rms is None or m.summary.missed > 0:
         return False
     # stable and unstable orbits of a self-excited system meet at a fold; a diagram whose
     # stable and unstable branches run side by side out of the window without one claims
     # bistability at every lower airspeed
-    if fold_required and fold_count(m) == 0:
+    if fold_required and m.fold_count == 0:
         return False
     # qualitatively the mechanistic model's diagram: at most one extra fold per branch
     # family (a network that snakes through the points is not a model of them)
-    families = len(mech_m["folds"]) if isinstance(mech_m.get("folds"), dict) else 1
-    if fold_count(m) > fold_count(mech_m) + families:
+    if m.fold_count > mech_m.fold_count + mech_m.families:
         return False
-    mech_rms = mech_m.get("branch_rms")
-    if mech_rms is not None and m["branch_rms"] >= mech_rms:
+    mech_rms = mech_m.summary.branch_rms
+    if mech_rms is not None and m.summary.branch_rms >= mech_rms:
         return False
     # oscillator: better than the mechanistic model at every frequency, not just overall
-    for f, v in (mech_m.get("per_frequency") or {}).items():
-        mine = m["per_frequency"].get(f, {}).get("branch_rms")
-        if v["branch_rms"] is not None and (mine is None or mine >= v["branch_rms"]):
+    mine = m.per_frequency or {}
+    for f, v in (mech_m.per_frequency or {}).items():
+        rms = mine[f].branch_rms if f in mine else None
+        if v.branch_rms is not None and (rms is None or rms >= v.branch_rms):
             return False
     return True
 
@@ -73,17 +67,18 @@ def _is_adequate(m, best_rms, mech_m, opts, scatter: float = 0.0,
                  fold_required: bool = False) -> bool:
     """Credible, and within ``adequacy_factor`` of the best credible start's error (or
     under the floor, or under the data's own scatter)."""
-    return _credible(m, mech_m, fold_required) and m["branch_rms"] <= max(
+    return _credible(m, mech_m, fold_required) and m.summary.branch_rms <= max(
         opts.adequacy_factor * best_rms, opts.adequacy_floor, scatter)
 
 
-def judge_starts(start_metrics: list, mech_m: dict, opts: FitOptions,
-                 scatter: float = 0.0, fold_required: bool = False) -> list[bool]:
+def judge_starts(start_metrics: list[ModelMetrics | None], mech_m: ModelMetrics,
+                 opts: FitOptions, scatter: float = 0.0,
+                 fold_required: bool = False) -> list[bool]:
     """Adequacy of each start (None for a dropped one). The reference for "within a factor
     of the best" is the best start that is itself credible: one that snakes through every
     point (folds the data does not show) fits closer than a model of the physics should,
     and must not set the bar."""
-    best_rms = min((m["branch_rms"] for m in start_metrics
+    best_rms = min((m.summary.branch_rms for m in start_metrics
                     if _credible(m, mech_m, fold_required)), default=np.inf)
     return [m is not None and _is_adequate(m, best_rms, mech_m, opts, scatter, fold_required)
             for m in start_metrics]

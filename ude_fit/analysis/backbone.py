@@ -29,6 +29,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .._systems import system_kind
+from .metrics_type import BranchErrors, PointError
 
 
 @dataclass(frozen=True)
@@ -96,27 +97,24 @@ class HopfBackbone:
         return {"parameter": self.airspeed(r), "amplitude": r,
                 "stable": self.stable(np.maximum(r, 1e-300 * self.r_scale))}
 
-    def metrics(self, V, A, stable) -> dict:
+    def metrics(self, V, A, stable) -> BranchErrors:
         """Branch amplitude errors against measured points (the definitions of
         :mod:`ude_fit.analysis.metrics`: the orbit at the point's airspeed with its stability,
-        nearest in amplitude, error over the largest measured amplitude; missed where none)."""
+        nearest in amplitude, error over the largest measured amplitude; missed where none).
+        The backbone has no trajectory, so the points have no trajectory error."""
         V, A = np.asarray(V, float), np.asarray(A, float)
         a_max = float(A.max())
-        errs, missed, points = [], 0, []
+        points = []
         for v, a, st in zip(V, A, stable):
-            cands = [r for r, s in self.orbits_at(v) if st is None or s == st]
+            measured = dict(parameter=float(v), frequency=None, measured=float(a), stable=st)
+            cands = [(r, s) for r, s in self.orbits_at(v) if st is None or s == st]
             if not cands:
-                missed += 1
-                points.append({"parameter": float(v), "measured": float(a), "missed": True})
+                points.append(PointError(**measured))
                 continue
-            r = min(cands, key=lambda x: abs(x - a))
-            errs.append(abs(r - a) / a_max)
-            points.append({"parameter": float(v), "measured": float(a), "model": r,
-                           "error": errs[-1], "missed": False})
-        e = np.array(errs)
-        return {"branch_rms": float(np.sqrt(np.mean(e ** 2))) if e.size else None,
-                "branch_max": float(e.max()) if e.size else None, "missed": missed,
-                "points": points}
+            r, s = min(cands, key=lambda x: abs(x[0] - a))
+            points.append(PointError(**measured, model=r, error=abs(r - a) / a_max,
+                                     model_stable=s))
+        return BranchErrors.of(points, a_max)
 
     def to_json(self) -> dict:
         return {"form": "r' = r (m (V - V_H) + a r^2 + b r^4): V = V_H + c1 s + c2 s^2, "
@@ -125,6 +123,19 @@ class HopfBackbone:
                 "fold_std": self.fold_std(), "fold_amplitude": self.fold_amplitude,
                 "c1": self.c1, "c2": self.c2, "r_scale": self.r_scale,
                 "growth_sign": self.m_sign, "residual_std": self.residual_std}
+
+
+@dataclass(frozen=True)
+class BackboneFit:
+    """A backbone fitted to measured points, with its branch errors against them."""
+    curve: HopfBackbone
+    errors: BranchErrors
+
+    def to_json(self) -> dict:
+        """The curve and its headline figures (as metrics.json's ``backbone``)."""
+        s = self.errors.summary
+        return {**self.curve.to_json(), "branch_rms": s.branch_rms,
+                "branch_max": s.branch_max, "missed": s.missed}
 
 
 def fit_backbone(V, A, stable=None) -> HopfBackbone | None:

@@ -10,7 +10,8 @@ from ..data.orbit import OrbitDataset
 from ..models.ude import UDE
 from .continuation import trace_flutter, trace_flutter_through, trace_forced
 from .diagram_type import MAIN, Diagram
-from .metrics import branch_metrics, locations, model_orbit, with_reference
+from .metrics import branch_metrics, locations, model_orbit
+from .metrics_type import ModelMetrics
 
 
 def diagram_ranges(ds: OrbitDataset) -> dict:
@@ -72,8 +73,7 @@ def _with_isolas(model, diagram, ranges, scales, ds, max_isolas: int = 6, near: 
     return diagram
 
 
-def _evaluate(model, ds, ranges, scales, reference, ref_source) -> tuple[dict, dict]:
+def _evaluate(model, ds, ranges, scales, reference, ref_source) -> tuple[Diagram, ModelMetrics]:
     diagram = trace_diagram(model, ranges, scales, ds)
-    m = branch_metrics(model, diagram, ds, scales=scales)
-    m.update(with_reference(locations(diagram), reference, ref_source))
-    return diagram, m
+    return diagram, ModelMetrics.of(branch_metrics(model, diagram, ds, scales=scales),
+                                    locations(diagram), reference, ref_source)

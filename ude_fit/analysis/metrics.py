@@ -27,7 +27,7 @@ from .._fourier import K, harmonics
 from ..data.orbit import OrbitDataset
 from .continuation import orbit_at, same_fold
 from .diagram_type import Diagram
-
+from .metrics_type import BranchErrors, PointError
 
 
 def _series(coeffs):
@@ -62,7 +62,7 @@ def aligned_rms(model_coeffs, data_coeffs, scale) -> float:
 FOLD_TOLERANCE = 0.01      # of the measured parameter span: see the module docstring
 
 
-def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> dict:
+def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> BranchErrors:
     """Branch amplitude and trajectory errors of ``model`` (whose traced branches are
     ``diagram``: {"flutter": Branch} or {frequency_hz: Branch}) against the dataset."""
     amps = ds.amplitudes()
@@ -74,42 +74,20 @@ def branch_metrics(model, diagram: dict, ds: OrbitDataset, *, scales) -> dict:
                               for o in ds.orbits) for i in range(n_pos)])
     points = []
     for o in ds.orbits:
-        rec = {"parameter": o.parameter, "frequency": o.frequency, "measured": o.amplitude,
-               "stable": o.stable}
+        measured = dict(parameter=o.parameter, frequency=o.frequency, measured=o.amplitude,
+                        stable=o.stable)
         sol = model_orbit(model, diagram, o, scales=scales, fold_tolerance=fold_tol)
         if sol is None or (o.stable is not None and not sol.get("at_fold")
                            and sol["stable"] != o.stable):
-            rec.update(model=None, error=None, trajectory=None, missed=True)
-        else:
-            e = abs(sol["amplitude"] - o.amplitude) / a_max
-            hc = np.asarray(harmonics(sol["samples"][:, :n_pos]))      # (n_pos, 15)
-            tr = aligned_rms(hc, np.asarray(o.coeffs)[:n_pos], pos_scale)
-            rec.update(model=sol["amplitude"], error=e, trajectory=tr, missed=False,
-                       model_stable=sol["stable"])
-            if sol.get("at_fold"):
-                rec.update(at_fold=True, model_parameter=sol["parameter"])
-        points.append(rec)
-    out = _summary(points, a_max)
-    out["points"] = points
-    if ds.kind.forced:
-        out["per_frequency"] = {
-            f"{f:g}": _summary([p for p in points if round(p["frequency"], 6) == f], a_max)
-            for f in ds.frequencies_group()}
-    return out
-
-
-def _summary(points: list, a_max: float) -> dict:
-    errs = np.array([p["error"] for p in points if not p["missed"]])
-    traj = np.array([p["trajectory"] for p in points if not p["missed"]])
-    # a missed point counted as if the model predicted rest there (error = the measured
-    # amplitude): one figure that a model cannot improve by dropping hard points
-    every = np.array([p["measured"] / a_max if p["missed"] else p["error"] for p in points])
-    return {"branch_rms": float(np.sqrt(np.mean(errs ** 2))) if errs.size else None,
-            "branch_rms_with_missed": float(np.sqrt(np.mean(every ** 2))) if every.size
-            else None,
-            "branch_max": float(errs.max()) if errs.size else None,
-            "missed": int(sum(p["missed"] for p in points)),
-            "trajectory_rms": float(np.sqrt(np.mean(traj ** 2))) if traj.size else None}
+            points.append(PointError(**measured))
+            continue
+        hc = np.asarray(harmonics(sol["samples"][:, :n_pos]))      # (n_pos, 15)
+        points.append(PointError(
+            **measured, model=sol["amplitude"], error=abs(sol["amplitude"] - o.amplitude) / a_max,
+            trajectory=aligned_rms(hc, np.asarray(o.coeffs)[:n_pos], pos_scale),
+            model_stable=sol["stable"],
+            model_parameter=sol["parameter"] if sol.get("at_fold") else None))
+    return BranchErrors.of(points, a_max, ds.frequencies_group() if ds.kind.forced else None)
 
 
 def model_orbit(model, diagram: dict, o, *, scales,
@@ -183,19 +161,3 @@ def locations(diagram: dict) -> dict:
     return {"hopf": None, "fold": None,
             "folds": {f"{float(f):g}": sorted(x["param"] for x in b.folds)
                       for f, b in diagram.items()}}
-
-
-def with_reference(loc: dict, reference: dict, source: str) -> dict:
-    """Hopf/fold entries {"model", "reference", "error", "reference_source"}."""
-    out = {}
-    for key in ("hopf", "fold"):
-        m, r = loc.get(key), reference.get(key)
-        out[key] = {"model": m, "reference": r,
-                    "error": (m - r) if (m is not None and r is not None) else None,
-                    "reference_source": source if r is not None else None}
-    if "folds" in loc:
-        out["folds"] = loc["folds"]
-    if "isolas" in loc:
-        out["isolas"] = loc["isolas"]
-        out["isola_folds"] = loc["isola_folds"]
-    return out

@@ -77,9 +77,9 @@ class Progress:
         if event == "stage":
             self.say(kw["stage"])
         elif event == "model":
-            m = kw["metrics"]
-            self.say(f"{kw['which']} model: branch RMS {pct(m['branch_rms'])}, missed "
-                     f"{m['missed']}")
+            m = kw["metrics"].summary
+            self.say(f"{kw['which']} model: branch RMS {pct(m.branch_rms)}, missed "
+                     f"{m.missed}")
         elif event == "start":
             self.say(f"start {kw['start']}/{kw['starts']}")
         elif event == "train":
@@ -101,6 +101,7 @@ class Progress:
             r = kw["record"]
             if r.ok:
                 self.say(f"start {r.start} done in {r.seconds:.1f} s: branch RMS "
-                         f"{pct(r.metrics['branch_rms'])}, missed {r.metrics['missed']}")
+                         f"{pct(r.metrics.summary.branch_rms)}, missed "
+                         f"{r.metrics.summary.missed}")
             else:
                 self.say(f"start {r.start} dropped: {r.reason}")

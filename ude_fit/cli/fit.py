@@ -26,12 +26,12 @@ def run(args, argv) -> int:
     progress.say(f"{len(ds)} orbits loaded ({args.system}); fitting")
     res = fit(ds, opts, progress=progress)
     metrics = write_fit(out, ds, res, provenance(command_line(argv), args.data))
-    u = metrics["ude"]
+    kept = res.kept
     print(f"wrote {out}/: metrics.json, report.md, " + ", ".join(metrics["figures"].values())
-          + ", mechanistic.eqx" + (", ude.eqx" if u else ""))
-    print(f"branch RMS error: mechanistic {pct(metrics['mechanistic']['branch_rms'])}, "
-          f"UDE {pct(u['branch_rms']) if u else 'no model'}; adequate starts "
-          f"{metrics['starts']['adequate']}/{opts.starts}")
+          + ", mechanistic.eqx" + (", ude.eqx" if kept else ""))
+    print(f"branch RMS error: mechanistic {pct(res.mechanistic_metrics.summary.branch_rms)}, "
+          f"UDE {pct(kept.metrics.summary.branch_rms) if kept else 'no model'}; adequate "
+          f"starts {res.adequate}/{opts.starts}")
     if res.ude is None:
         print("ude-fit: every start diverged; no UDE (see report.md)", file=sys.stderr)
         return 1

@@ -63,14 +63,14 @@ def _finish(args, argv, name, ds, result, progress) -> int:
                                         seed=args.seed), progress=progress)
     doc = write_loop(out, ds, result, provenance(command_line(argv), args.data), name=name,
                      options=_options(args))
-    b, a = doc["before"], doc["after"]
+    b, a = result.before.metrics.summary, result.after.metrics.summary
     eff = doc["effect"]
     print(f"wrote {out}/: metrics.json, report.md, " + ", ".join(doc["figures"].values())
           + ", " + ", ".join(doc["models"].values()))
     print(f"effect: {eff['name'] + ' (' + eff['key'] + ')' if eff else 'none added'}; "
           f"branch RMS error (missed points counted): before "
-          f"{100 * b['branch_rms_with_missed']:.2f} %, after "
-          f"{100 * a['branch_rms_with_missed']:.2f} %")
+          f"{100 * b.branch_rms_with_missed:.2f} %, after "
+          f"{100 * a.branch_rms_with_missed:.2f} %")
     return 0
 
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..analysis.diagram import _evaluate
+from ..analysis.metrics_type import ModelMetrics
 from ..data.orbit import OrbitDataset
 from ..fitting import fit, identify_mechanistic, prepare
 from ..models.library import LIBRARY, STRUCTURAL, effect, states_of
@@ -44,9 +45,15 @@ class Stage:
     name: str
     model: UDE
     diagram: dict
-    metrics: dict
+    metrics: ModelMetrics
     identification: dict
     scales: np.ndarray
+    n_parameters: int
+
+    def brief(self) -> dict:
+        """The figures a step's record keeps."""
+        return {**{k: v for k, v in self.metrics.summary.to_json().items()
+                   if k != "branch_rms_with_missed"}, "n_parameters": self.n_parameters}
 
 
 @dataclass
@@ -91,9 +98,7 @@ def _n_parameters(model: UDE) -> int:
 def _stage(name, model, ds, data, ranges, ref, ref_source, ident) -> Stage:
     scales = np.asarray(augment(data, model.mech).y_scale)
     diagram, m = _evaluate(model, ds, ranges, scales, ref, ref_source)
-    m["n_parameters"] = _n_parameters(model)
-    m["parameters"] = ident.get("parameters", {})
-    return Stage(name, model, diagram, m, ident, scales)
+    return Stage(name, model, diagram, m, ident, scales, _n_parameters(model))
 
 
 def _identify(data, system, added, *, seed, bootstrap):
@@ -107,14 +112,15 @@ def _identify(data, system, added, *, seed, bootstrap):
     return mech, ident
 
 
-def _better(new: dict, old: dict, min_gain: float) -> bool:
-    if new["branch_rms"] is None:
+def _better(new: ModelMetrics, old: ModelMetrics, min_gain: float) -> bool:
+    new, old = new.summary, old.summary
+    if new.branch_rms is None:
         return False
-    if new["missed"] < old["missed"]:
+    if new.missed < old.missed:
         return True
-    if new["missed"] > old["missed"] or old["branch_rms"] is None:
+    if new.missed > old.missed or old.branch_rms is None:
         return False
-    return new["branch_rms"] <= (1.0 - min_gain) * old["branch_rms"]
+    return new.branch_rms <= (1.0 - min_gain) * old.branch_rms
 
 
 def _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap) -> Stage:
@@ -166,13 +172,8 @@ def refine(ds: OrbitDataset, system: str, add: list, *, reference=None, seed: in
     ex = explain(data, system, seed=seed, bootstrap=bootstrap)
     return LoopResult(system, before, after, added, steps=[
         {"step": 1, "candidate": ", ".join(k for k, _ in added), "kept": True,
-         "reason": "given with --add", "metrics": _brief(after.metrics)}],
+         "reason": "given with --add", "metrics": after.brief()}],
         explanations=[ex], ranges=ranges, seconds=time.perf_counter() - t0)
-
-
-def _brief(m: dict) -> dict:
-    return {k: m.get(k) for k in ("branch_rms", "branch_max", "missed", "trajectory_rms",
-                                  "n_parameters")}
 
 
 def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
@@ -238,7 +239,7 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                               "kind": cand["kind"], "shape": cand["shape"], "kept": False,
                               "significant": True, "reason": "another candidate of this "
                               f"step ({best[0]['key']}) does better on the diagram",
-                              "metrics": _brief(st.metrics)})
+                              "metrics": st.brief()})
         top, trial, ident, stage = best
         keep = _better(stage.metrics, current.metrics, min_gain)
         reason = ("improves the diagram" if keep else
@@ -250,7 +251,7 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
         steps.append({"step": step, "candidate": top["key"], "name": top["name"],
                       "kind": top["kind"], "shape": top["shape"], "kept": keep,
                       "significant": why_tried is None, "reason": reason,
-                      "metrics": _brief(stage.metrics)})
+                      "metrics": stage.brief()})
         say(event="step", record=steps[-1])
         if not keep:
             break
@@ -305,20 +306,21 @@ def catalogue_keys(system: str) -> tuple:
 def metrics_document(result: LoopResult) -> dict:
     """The JSON-able summary: before, after, effect, steps, candidates."""
     def side(stage: Stage, ude_fit=None) -> dict:
-        m = {k: v for k, v in stage.metrics.items() if k != "points"}
-        m["points"] = stage.metrics.get("points")
+        m = stage.metrics.to_json()
+        points = m.pop("points")
+        m.update(n_parameters=stage.n_parameters,
+                 parameters=stage.identification.get("parameters", {}), points=points)
         m["effects"] = describe(stage.model.mech)
         m["identification"] = {k: v for k, v in stage.identification.items()
                                if k not in ("parameters",)}
         if ude_fit is not None:
-            u = ude_fit.metrics.get("ude")
-            m["ude"] = None if u is None else {
-                **{k: u.get(k) for k in ("branch_rms", "branch_rms_with_missed",
-                                         "branch_max", "missed", "trajectory_rms", "hopf",
-                                         "fold")},
+            kept = ude_fit.kept
+            m["ude"] = None if kept is None else {
+                **kept.metrics.summary.to_json(), "hopf": kept.metrics.hopf.to_json(),
+                "fold": kept.metrics.fold.to_json(),
                 "n_parameters": _n_parameters(ude_fit.ude) if ude_fit.ude else None,
-                "adequate_starts": ude_fit.metrics["starts"]["adequate"],
-                "starts": ude_fit.metrics["starts"]["requested"]}
+                "adequate_starts": ude_fit.adequate,
+                "starts": ude_fit.options.starts}
         return m
 
     first = result.explanations[0] if result.explanations else None

@@ -16,7 +16,7 @@ def write_fit(out, ds, res, provenance: dict) -> dict:
     ``out`` (created); returns the metrics document written to metrics.json."""
     os.makedirs(out, exist_ok=True)
     opts = res.options.to_json()
-    metrics = {**res.metrics, **provenance, "options": opts}
+    metrics = {**res.to_json(), **provenance, "options": opts}
     meta = dict(options=opts, sources=list(ds.sources), scales=res.scales,
                 ranges=res.ranges, version=provenance["version"],
                 written=provenance["written"])
