@@ -32,7 +32,7 @@ NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory"
             "--equilibrium-penalty", "4.5", "--smoothness-penalty", "5.5",
             "--weight-decay", "6.5", "--param-scale", "2", "--param-dependence", "polynomial",
             "--param-degree", "3", "--reference-hopf", "24.1", "--reference-fold", "20.4",
-            "--rest-free"]
+            "--rest-free", "--starts-together"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 
 

@@ -35,7 +35,7 @@ from .training.gp import fit_gp
 from .training.identify import TrainingData, augment, identify, residual_forces, training_data
 from .training.optimise import Diverged
 from .training.options import FitOptions
-from .training.train import refine_mechanistic, train_ensemble
+from .training.train import refine_mechanistic, train_ensemble, train_ude
 
 # the figures of a start's metrics its record keeps (with its fold count)
 _RECORD_METRICS = ("branch_rms", "branch_max", "missed", "trajectory_rms", "hopf", "fold")
@@ -128,7 +128,7 @@ class FitResult:
                        "dropped": [{"start": s.start, "reason": s.reason}
                                    for s in self.starts if not s.ok],
                        "adequate": self.adequate,
-                       "trained_together": opts.approximator == "nn",
+                       "trained_together": opts.approximator == "nn" and opts.starts_together,
                        "train_seconds": float(sum(s.train_seconds or 0.0 for s in self.starts)),
                        "kept": None if best is None else best.start,
                        "criterion": {"missed": 0, "below_mechanistic": True,
@@ -170,8 +170,21 @@ def backbone_metrics(ds: OrbitDataset) -> BackboneFit | None:
 def _train_starts(mech_model, data: TrainingData, opts: FitOptions, keys, say,
                   verbose: bool):
     """Every start's training: per start (UDE, info) or the Diverged that dropped it, and
-    per start its training seconds (the NN starts train together as one vectorised
-    ensemble, so each is charged an equal share of the ensemble's time)."""
+    per start its training seconds (with ``starts_together`` the NN starts train as one
+    vectorised ensemble, and each is charged an equal share of the ensemble's time)."""
+    if opts.approximator == "nn" and not opts.starts_together:
+        trained, seconds = [], []
+        for k in range(opts.starts):
+            t0 = time.perf_counter()
+            progress = ((lambda **kw: say(event="train", start=k + 1, **kw)) if verbose
+                        else None)
+            try:
+                trained.append(train_ude(mech_model, data, key=keys[k], cfg=opts.train,
+                                         training=opts.training, progress=progress))
+            except Diverged as exc:
+                trained.append(exc)
+            seconds.append(time.perf_counter() - t0)
+        return trained, seconds
     if opts.approximator == "nn":
         say(event="stage", stage=f"training {opts.starts} starts together")
         t0 = time.perf_counter()

@@ -85,6 +85,10 @@ def add_fit_arguments(p) -> None:
                    "(default), or that refined by output error on the periodic orbits")
     p.add_argument("--starts", type=positive_int("--starts"), default=5,
                    help="random starts; the best adequate one is kept (default 5)")
+    p.add_argument("--starts-together", action="store_true",
+                   help="train the network's starts as one vectorised ensemble (each start "
+                   "the same as alone; faster for cheap losses, slower with the energy "
+                   "penalties)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--width", type=positive_int("--width"), default=12,
                    help="hidden units per layer of the NN (default 12)")
@@ -134,7 +138,8 @@ def fit_options(args):
     return FitOptions(
         mechanistic_parameters=params,
         system=args.system, approximator=args.approximator, training=args.training,
-        starts=args.starts, seed=args.seed, mechanistic=args.mechanistic,
+        starts=args.starts, starts_together=args.starts_together, seed=args.seed,
+        mechanistic=args.mechanistic,
         reference_hopf=args.reference_hopf, reference_fold=args.reference_fold,
         train=TrainConfig(width=args.width, depth=args.depth, param_scale=args.param_scale,
                           param_dependence=args.param_dependence,

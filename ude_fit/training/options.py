@@ -132,6 +132,11 @@ class FitOptions:
     approximator: str = "nn"
     training: str = "periodic"
     starts: int = 5
+    # the NN starts trained as one vectorised ensemble (training/optimise.py): the same
+    # result per start; faster where a loss evaluation is cheap (per-operation overhead
+    # dominates), slower where it is heavy (the energy penalties: a batched line search
+    # runs as long as its slowest start)
+    starts_together: bool = False
     seed: int = 0
     samples: int = 32                 # samples per period of each averaged orbit
     train: TrainConfig = TrainConfig()
@@ -187,8 +192,13 @@ class FitOptions:
         if not system_kind(self.system).autonomous and self.train.rest_free:
             raise ValueError("--rest-free applies to --system flutter only (a forced "
                              "system has no equilibrium at rest)")
+        if not isinstance(self.starts_together, bool):
+            raise ValueError(f"starts_together must be True or False, not "
+                             f"{self.starts_together!r}")
         if self.approximator != "nn":
             nn_only = [f"--{p.option}" for p in active]
+            if self.starts_together:
+                nn_only.append("--starts-together")
             if self.train.rest_free:
                 nn_only.append("--rest-free")
             if self.train.param_scale != 1.0:
