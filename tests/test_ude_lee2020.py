@@ -62,13 +62,18 @@ def test_ude_reproduces_every_point_with_its_stability(lee_fit):
     assert mech is None or m["ude"]["branch_rms"] < mech
 
 
+def _figure(x) -> str:
+    # a model that misses every point has no branch RMS (the bounded mechanistic model does)
+    return "—" if x is None else f"{x:.4f}"
+
+
 def test_the_kept_start_is_adequate_with_the_subcritical_picture(lee_fit, capsys):
     _, m, _ = lee_fit
     with capsys.disabled():
         print("\nlee2020 model2: mechanistic branch RMS "
-              f"{m['mechanistic']['branch_rms']:.4f} (missed {m['mechanistic']['missed']}), "
-              f"UDE {m['ude']['branch_rms']:.4f}; starts "
-              + ", ".join(f"{r['start']}: {r['metrics']['branch_rms']:.4f}/"
+              f"{_figure(m['mechanistic']['branch_rms'])} (missed "
+              f"{m['mechanistic']['missed']}), UDE {_figure(m['ude']['branch_rms'])}; starts "
+              + ", ".join(f"{r['start']}: {_figure(r['metrics']['branch_rms'])}/"
                           f"{r['metrics']['missed']}/{r['metrics']['fold_count']} folds"
                           f"{'*' if r['adequate'] else ''}"
                           for r in m["starts"]["records"] if r.get("metrics")))
