@@ -3,7 +3,8 @@ of the equation is fitted in the shape's place, the other shapes and the mechani
 nuisance columns kept; they are compared with the spline itself and with nothing by the
 Bayesian information criterion, the samples of an orbit counted as the 2K+1 numbers they
 carry. The best is named with the evidence (the criterion of each contender); a catalogue
-term wins a tie, having a name already. When the spline beats every class by a margin
+term wins a tie, having a name already, and the tied class of the other origin is kept
+beside it (``Description.tie``) for the loop to try on the diagram. When the spline beats every class by a margin
 Kass and Raftery call very strong (10), no class describes the shape: "an effect in
 <equation> depending on <state>, shaped like <the best class>".
 """
@@ -50,6 +51,10 @@ class Description:
     phrase_text: str
     region: dict
     contenders: list = field(default_factory=list)   # by BIC, spline and none included
+    # the best contender of the other origin (a class when a catalogue term is named, a
+    # catalogue term when a class is) within positive BIC evidence of the best: the
+    # criterion cannot tell them apart, so the loop lets the diagram decide
+    tie: Contender | None = None
 
     def phrase(self) -> str:
         return self.phrase_text
@@ -60,7 +65,8 @@ class Description:
                 "region": self.region, "shape": self.best.shape,
                 "coefficients": self.best.coefficients,
                 "spline": None if self.spline is None else self.spline.to_dict(),
-                "evidence": [c.to_dict() for c in self.contenders]}
+                "evidence": [c.to_dict() for c in self.contenders],
+                "tie": None if self.tie is None else self.tie.to_dict()}
 
 
 def _fit_with(design, yn, skip: int, C: np.ndarray):
@@ -126,6 +132,9 @@ def describe_shape(system: str, loc: EquationLocation, shape: Shape, S: dict) ->
     if cat is not None and cat.bic <= best.bic + POSITIVE and cat.n_parameters <= best.n_parameters:
         best = cat
     named = best.bic <= spline.bic + VERY_STRONG
+    top = out[0].bic
+    tie = next((c for c in out if c.catalogue != best.catalogue
+                and c.bic <= top + POSITIVE), None)
     coef = best.coefficients[0] if best.coefficients else 0.0
     if best.catalogue:
         phrase = f"{best.label} (catalogue)"
@@ -142,7 +151,8 @@ def describe_shape(system: str, loc: EquationLocation, shape: Shape, S: dict) ->
                         per_orbit)
     as_term = consider(located_key(system, loc.equation, shape.state, SPLINE.key),
                        SPLINE.label, False, cols, SPLINE.n_parameters, SPLINE.thresholds(u)[0])
-    return Description(eq_name, name, role, best, as_term, named, phrase, region, contenders)
+    return Description(eq_name, name, role, best, as_term, named, phrase, region, contenders,
+                       tie if named else None)
 
 
 def describe(location: Location, S: dict) -> Location:
