@@ -34,6 +34,7 @@ CASES = {
     "heave_direction_damping": ("flutter", "heave", "h_dot"),
     "pitch_asymmetric": ("flutter", "pitch", "alpha"),
     "pitch_softening": ("flutter", "pitch", "alpha"),
+    "heave_position_damping": ("flutter", "heave", "h"),
     "oscillator/contact": ("oscillator", "x", "x"),
     "oscillator/velocity_saturation": ("oscillator", "x", "x_dot"),
     "oscillator/fast_damper": ("oscillator", "x", "x_dot"),
