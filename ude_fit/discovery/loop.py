@@ -225,9 +225,11 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                                                      ref, ref_source, ident)))
         best = tried[0]
         for t in tried[1:]:
-            # the spline (many parameters) must beat a named form as the loop's own rule
-            # asks of any addition; a named candidate just has to do better
-            gain = min_gain if t[0].get("spline") else 0.0
+            # the spline (many parameters), and a class the criterion could not tell from
+            # the catalogue term named (a tie: the catalogue term explains as much), must
+            # beat it as the loop's own rule asks of any addition; a named candidate just
+            # has to do better
+            gain = min_gain if t[0].get("spline") or t[0].get("tie") else 0.0
             if _better(t[3].metrics, best[3].metrics, gain):
                 best = t
         for cand, _, _, st in tried:
@@ -286,7 +288,7 @@ def _located_candidates(loc: Location, system: str) -> list:
         out.append({"key": c.key, "name": name or f"{c.label} (tied by BIC with "
                     f"{d.best.label}) in {d.state}", "shape": c.shape,
                     "kind": effect(system, c.key).kind if c.catalogue else "located shape",
-                    "located": d.to_dict()})
+                    "located": d.to_dict(), "tie": name is None})
     return out
 
 
