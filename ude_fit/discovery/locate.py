@@ -318,7 +318,7 @@ def locate_equation(S: dict, y: np.ndarray, groups: np.ndarray, *, equation: int
         fs = sm.X @ b[sl]
         share = float(np.sum(fs ** 2)) / ss0 if ss0 > 0 else 0.0
         shape = Shape(equation, sm.key, states[sm.key], grid, value * scale, band * scale,
-                      x, (fs + res) * scale, design.lams[i], edf,
+                      x, _partial(sm.key, S, (fs + res) * scale), design.lams[i], edf,
                       gain * scale ** 2, se * scale ** 2, p,
                       bool(gain > se and p < LEVEL / len(smooths)), share)
         shape.region = {shape.name: _region(grid, value, band)}
@@ -328,6 +328,18 @@ def locate_equation(S: dict, y: np.ndarray, groups: np.ndarray, *, equation: int
                            float(np.sqrt(np.mean(res ** 2))) * scale)
     loc.design = (design, yn, scale, fid, n_eff)
     return loc
+
+
+def _partial(key: str, S: dict, r: np.ndarray) -> np.ndarray:
+    """The partial residual as the shape reads it: for a coefficient of a velocity, the
+    force over the velocity where the velocity is at least its median size (nan elsewhere,
+    where the quotient is noise)."""
+    times = state_parts(key)[1]
+    if times is None:
+        return r
+    v = np.asarray(S[times], float)
+    big = np.abs(v) >= np.median(np.abs(v))
+    return np.where(big, r / np.where(big, v, 1.0), np.nan)
 
 
 def _f_test(rss0: float, rss1: float, edf: float, n: int, n_eff: float,
