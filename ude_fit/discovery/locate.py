@@ -377,9 +377,15 @@ def nuisance_columns(system: str, S: dict, equation: int) -> np.ndarray:
 
 
 def locate(data: TrainingData, system: str, *, added: tuple = (), seed: int = 0,
-           folds: int = 10, target: np.ndarray | None = None) -> Location:
+           folds: int = 10, target: np.ndarray | None = None,
+           damping_shapes: bool = False) -> Location:
     """Shape functions of every state per equation of what the (refined) mechanistic model
-    leaves; ``target`` (N, n_eq): forces to locate instead (e.g. a UDE's correction)."""
+    leaves; ``target`` (N, n_eq): forces to locate instead (e.g. a UDE's correction).
+    ``damping_shapes``: also each displacement as the coefficient of the equation's own
+    velocity (position-dependent damping, ``forms.located_states``). Off by default: fitted
+    together with the single states, a shape of h' and the coefficient of h' depending on h
+    share what they explain (concurvity), and on the aerofoil's direction-dependent heave
+    damping neither was significant any more (measured, docs/experiments.md)."""
     A, b, _, _ = regression(data, system, effects=tuple(added))
     if target is not None:
         b = -np.asarray(target, float).reshape(b.shape)
@@ -389,7 +395,8 @@ def locate(data: TrainingData, system: str, *, added: tuple = (), seed: int = 0,
     eqs = []
     for eq in range(b.shape[1]):
         loc = locate_equation(S, -b[:, eq], groups, equation=eq, base=A[:, eq, :],
-                              states=located_states(system, eq),
+                              states=(located_states(system, eq) if damping_shapes
+                                      else STATE_NAMES[system]),
                               nuisance=nuisance_columns(system, S, eq), folds=folds,
                               seed=seed + eq, per_orbit=n)
         loc.name = EQUATION_NAMES[system][eq]
