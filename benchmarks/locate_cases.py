@@ -54,7 +54,9 @@ def write_case_campaign(path, name: str, seed: int = 0) -> None:
 # 25.6 % after, 32.5 % before). Not a naming failure: the planted form at the planted
 # threshold, given to `ude-fit refine`, reaches only 25.0 % (coefficient 19.4 against 30).
 # Position-dependent damping (-c h^2 h') is a product of two states: the additive shapes of
-# single states locate the heave equation but on h', and nothing improves the diagram.
+# single states locate the heave equation but on h', and nothing improves the diagram (the
+# library's locate(..., damping_shapes=True) finds it, but the loop does not use it: see
+# docs/experiments.md).
 KNOWN_SHORT = {
     "pitch_softening": "named as the catalogue's pitch_poly57; error 0.77 of before (the planted "
                        "form itself, refitted: 0.77)",
