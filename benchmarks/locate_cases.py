@@ -1,11 +1,15 @@
-"""`ude-fit loop` on aerofoil rigs started with effects of forms the catalogue does not list
-(rig plugins under tests/plugins/): the loop must locate the right equation and state and
-bring the branch error (missed points counted) to at most a third of the mechanistic
-model's. Each campaign: the rig's own true orbits held by its board at sigma = 0.02.
+"""`ude-fit loop` on rigs started with effects of forms the catalogue does not list (rig
+plugins under tests/plugins/: the aerofoil's at the top, the oscillator's under
+oscillator/): the loop must locate the right equation and state and bring the branch error
+(missed points counted) to at most a third of the mechanistic model's. Each campaign: the
+rig's own true orbits held by its board at sigma = 0.02 (the aerofoil at airspeeds
+19-25.5 m/s; the oscillator on the wide-band campaign's frequencies, 20-26 Hz in 2 Hz
+steps, five forcing levels each).
 
-These are slow (a campaign and a loop each, 5-10 minutes on 2 cores), so they are a measurement
-run by hand, not part of the suite: ``python3 -m pytest -q -s benchmarks/locate_cases.py``.
-The loop runs with the experimental ``--locate-shapes``."""
+These are slow (a campaign and a loop each, 2-10 minutes on 2 cores), so they are a
+measurement run by hand, not part of the suite:
+``python3 -m pytest -q -s benchmarks/locate_cases.py``. The loop runs with
+``--locate-shapes``."""
 
 from __future__ import annotations
 
@@ -23,19 +27,41 @@ jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (s
 
 PLUGINS = Path(__file__).resolve().parents[1] / "tests" / "plugins"
 AIRSPEEDS = (19.0, 20.0, 21.0, 22.0, 23.0, 24.0, 25.5)
+WIDE = {"freqs": (20.0, 22.0, 24.0, 26.0), "per_freq": 5}     # campaigns/oscillator_wide
 CASES = {
-    # plugin -> (equation, state it depends on)
-    "heave_stop": ("heave", "h"),
-    "heave_direction_damping": ("heave", "h_dot"),
-    "pitch_asymmetric": ("pitch", "alpha"),
-    "pitch_softening": ("pitch", "alpha"),
+    # plugin -> (system, equation, state it depends on)
+    "heave_stop": ("flutter", "heave", "h"),
+    "heave_direction_damping": ("flutter", "heave", "h_dot"),
+    "pitch_asymmetric": ("flutter", "pitch", "alpha"),
+    "pitch_softening": ("flutter", "pitch", "alpha"),
+    "heave_position_damping": ("flutter", "heave", "h"),
+    "oscillator/contact": ("oscillator", "x", "x"),
+    "oscillator/velocity_saturation": ("oscillator", "x", "x_dot"),
+    "oscillator/fast_damper": ("oscillator", "x", "x_dot"),
 }
 
 
-# measured 2026-11-24: located (pitch, alpha) but described as the catalogue's 5th/7th-order
-# pitch stiffness (within positive BIC evidence of the "beyond |d|" class, same parameter
-# count), which takes the branch error only from 32.5 % to 25.1 %
-KNOWN_SHORT = {"pitch_softening": "named as the catalogue's pitch_poly57; error 0.77 of before"}
+def write_case_campaign(path, name: str, seed: int = 0) -> None:
+    """The case's sigma = 0.02 campaign (the rig started with the plugin)."""
+    system = CASES[name][0]
+    where = {"airspeeds": AIRSPEEDS} if system == "flutter" else WIDE
+    write_truth_campaign(path, system, sigma=0.02, seed=seed, held_within=0.2,
+                         plugin=f"{PLUGINS / (name + '.py')}:force", **where)
+
+
+# measured 2026-11-24: located (pitch, alpha) and described as the catalogue's 5th/7th-order
+# pitch stiffness, tied by BIC with a smooth saturation (both tried on the diagram: 25.1 % and
+# 25.6 % after, 32.5 % before). Not a naming failure: the planted form at the planted
+# threshold, given to `ude-fit refine`, reaches only 25.0 % (coefficient 19.4 against 30).
+# Position-dependent damping (-c h^2 h') is a product of two states: the additive shapes of
+# single states locate the heave equation but on h', and nothing improves the diagram (the
+# library's locate(..., damping_shapes=True) finds it, but the loop does not use it: see
+# docs/experiments.md).
+KNOWN_SHORT = {
+    "pitch_softening": "named as the catalogue's pitch_poly57; error 0.77 of before (the planted "
+                       "form itself, refitted: 0.77)",
+    "heave_position_damping": "a product of two states: located on h', nothing kept",
+}
 
 
 @pytest.fixture(scope="module", params=[
@@ -43,19 +69,18 @@ KNOWN_SHORT = {"pitch_softening": "named as the catalogue's pitch_poly57; error 
     if n in KNOWN_SHORT else n for n in CASES])
 def looped(request, tmp_path_factory):
     name = request.param
-    tmp = tmp_path_factory.mktemp(name)
-    path = tmp / f"{name}.h5"
-    write_truth_campaign(path, "flutter", airspeeds=AIRSPEEDS, sigma=0.02,
-                         plugin=f"{PLUGINS / (name + '.py')}:force", held_within=0.2)
+    tmp = tmp_path_factory.mktemp(name.replace("/", "_"))
+    path = tmp / "campaign.h5"
+    write_case_campaign(path, name)
     out = tmp / "loop"
-    rc = cli.main(["loop", str(path), "--system", "flutter", "--locate-shapes", "--out", str(out),
-                   "--quiet"])
+    rc = cli.main(["loop", str(path), "--system", CASES[name][0], "--locate-shapes",
+                   "--out", str(out), "--quiet"])
     return name, rc, json.loads((out / "metrics.json").read_text()), out
 
 
 def test_located_equation_and_state_and_error_down_to_a_third(looped):
     name, rc, m, out = looped
-    equation, state = CASES[name]
+    _, equation, state = CASES[name]
     assert rc == 0
     e = m["effect"]
     assert e is not None, m["steps"]

@@ -10,6 +10,7 @@ import pytest
 
 from ude_fit.discovery.describe import describe_shape
 from ude_fit.discovery.locate import STATE_NAMES, locate_equation
+from ude_fit.models.forms import located_states
 from ude_fit.models.library import band_limited, effect
 
 N_ORBITS, N = 20, 32
@@ -28,13 +29,13 @@ def _orbits(seed):
     return S, rng
 
 
-def _located(planted, seed=1):
+def _located(planted, seed=1, states=None):
     S, rng = _orbits(seed)
     base = np.stack([S["hd"], S["h"]], 1)
     g = band_limited(planted(S)[:, None], N)[:, 0]        # what K-harmonic orbits carry
     y = base @ np.array([-1.0, -100.0]) + g + NOISE * rng.standard_normal(len(g))
     loc = locate_equation(S, y, np.repeat(np.arange(N_ORBITS), N), equation=0, base=base,
-                          states=STATE_NAMES["flutter"], per_orbit=N)
+                          states=states or STATE_NAMES["flutter"], per_orbit=N)
     loc.name = "heave"
     return loc, S
 
@@ -97,3 +98,26 @@ def test_a_located_form_is_an_effect_the_refined_model_can_carry():
     assert e.formula(np, S, 0.1)[:, 0] == pytest.approx([0.0, 0.1, 0.4])
     with pytest.raises(ValueError, match="unknown effect"):
         effect("flutter", "heave.h.wobble")
+
+
+def test_a_damping_that_grows_with_position_is_a_shape_of_the_position_times_the_velocity():
+    """-c h^2 h' is no shape of one state; as the coefficient of h' it is a shape of h."""
+    loc, S = _located(lambda S: -30 * S["h"] ** 2 * S["hd"],
+                      states=located_states("flutter", 0))
+    sig = loc.significant
+    assert sig[0].state == "h*hd" and sig[0].name == "h_dot(h)"
+    desc = describe_shape("flutter", loc, sig[0], S)
+    assert desc.best.key == "heave.h_dot(h).quadratic", [c.key for c in desc.contenders[:4]]
+    assert desc.best.coefficients[0] == pytest.approx(-30, rel=0.1)
+    assert desc.phrase() == "damping of h_dot depending on h: coefficient ~ h^2"
+    e = effect("flutter", "heave.h_dot(h).quadratic")
+    assert e.terms == ("h^2 h_dot",)
+    assert e.formula(np, {"h": np.array([0.5, 2.0]), "hd": np.array([2.0, -1.0])}, None)[:, 0] \
+        == pytest.approx([0.5, -4.0])
+
+
+def test_no_position_dependent_damping_in_noise_or_in_a_shape_of_one_state():
+    for planted in (lambda S: 0 * S["h"], lambda S: -50 * np.maximum(S["h"] - 0.5, 0)):
+        loc, _ = _located(planted, states=located_states("flutter", 0))
+        assert not any("*" in s.state for s in loc.significant), \
+            [(s.state, s.p_value) for s in loc.significant]

@@ -73,8 +73,14 @@ def flutter_branch(V_max: float = 26.0, effects: tuple = (), plugin: str | None 
 
 
 @lru_cache(maxsize=16)
-def oscillator_curve(freq_hz: float, effects: tuple = ()):
-    return oscillator_scurve(freq_hz, effects=list(effects) or None)
+def oscillator_curve(freq_hz: float, effects: tuple = (), plugin: str | None = None):
+    """The truth S-curve at one frequency; ``plugin``: the rig's --effect-plugin spec (a
+    force (F,) in N that vanishes at rest)."""
+    func = None
+    if plugin:
+        from rig_sim.physics.effects import load_plugin
+        func = load_plugin(plugin)
+    return oscillator_scurve(freq_hz, effects=list(effects) or None, plugin=func)
 
 
 def series_of_samples(H: np.ndarray) -> np.ndarray:
@@ -146,7 +152,8 @@ def oscillator_forcings(curve, per_freq: int) -> list[float]:
     return [0.5 * lo, *map(float, inside), 1.5 * hi]
 
 
-def oscillator_truth_orbits(freqs, per_freq: int, effects: tuple = ()) -> list[dict]:
+def oscillator_truth_orbits(freqs, per_freq: int, effects: tuple = (),
+                            plugin: str | None = None) -> list[dict]:
     """Truth orbits of the forced oscillator: dicts with parameter (Phi, m/s^2), frequency,
     stable, amplitude, coeffs (1, 15) and forcing (15,) = Phi cos(phi), both in the frame
     of the truth (t = 0 where the forcing Phi cos(w t) peaks), state, floquet_max."""
@@ -154,13 +161,17 @@ def oscillator_truth_orbits(freqs, per_freq: int, effects: tuple = ()) -> list[d
     Kp = oscillator_kernel_params(p)
     out = []
     for f in freqs:
-        curve = oscillator_curve(float(f), tuple(effects))
+        curve = oscillator_curve(float(f), tuple(effects), plugin)
+        force = curve._problem.plugin
         w = 2.0 * math.pi * float(f)
+
+        def deriv(y, dy, t, Phi):
+            F = 0.0 if force is None else force(t, y[0:1].copy(), y[1:2].copy(), None)[0]
+            oscillator_deriv(y, dy, Phi * math.cos(w * t), F, Kp, curve.effects, p.mass)
         for Phi in oscillator_forcings(curve, per_freq):
             for orb in oscillator_orbit_at(Phi, curve):
-                H = _rk4_period(lambda y, dy, t, Phi=Phi: oscillator_deriv(
-                    y, dy, Phi * math.cos(w * t), 0.0, Kp, curve.effects, p.mass),
-                    orb["state"], 1.0 / float(f), curve.n_steps)
+                H = _rk4_period(lambda y, dy, t, Phi=Phi: deriv(y, dy, t, Phi),
+                                orb["state"], 1.0 / float(f), curve.n_steps)
                 forcing = np.zeros(NCOEF)
                 forcing[1] = Phi
                 out.append(dict(parameter=float(Phi), frequency=float(f),
@@ -315,7 +326,8 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
     stores only the board's Fourier means of such a run (as a campaign without records).
     effects: ("name=value", ...) catalogue effects the rig (and its truth) is started with;
     the campaign file does not mention them (they are undeclared physics). plugin: the
-    rig's --effect-plugin FILE.py:FUNC (flutter only; time-invariant, compilable by numba).
+    rig's --effect-plugin FILE.py:FUNC (time-invariant, compilable by numba; the aerofoil's
+    returns (heave force, pitch moment), the oscillator's (force on the tip,)).
     held_within: drop a point whose held response's first-harmonic amplitude is off the
     truth orbit's by more than this fraction (noise knocked the board off an orbit it
     could not hold: a CBC campaign would not log it as converged); returned records are
@@ -327,7 +339,8 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
                                       effects, plugin)
     elif system == "oscillator":
         truths = oscillator_truth_orbits(DEFAULT_FREQS if freqs is None else freqs,
-                                         4 if per_freq is None else int(per_freq), effects)
+                                         4 if per_freq is None else int(per_freq), effects,
+                                         plugin)
     else:
         raise ValueError(f"system {system!r}: flutter or oscillator")
     if record_s is None:

@@ -3,7 +3,8 @@ of the equation is fitted in the shape's place, the other shapes and the mechani
 nuisance columns kept; they are compared with the spline itself and with nothing by the
 Bayesian information criterion, the samples of an orbit counted as the 2K+1 numbers they
 carry. The best is named with the evidence (the criterion of each contender); a catalogue
-term wins a tie, having a name already. When the spline beats every class by a margin
+term wins a tie, having a name already, and the tied class of the other origin is kept
+beside it (``Description.tie``) for the loop to try on the diagram. When the spline beats every class by a margin
 Kass and Raftery call very strong (10), no class describes the shape: "an effect in
 <equation> depending on <state>, shaped like <the best class>".
 """
@@ -14,7 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..models.forms import FORMS, SPLINE, STATES, located_key
+from ..models.forms import (FORMS, SPLINE, STATES, VELOCITY, form_columns, located_key,
+                            state_parts)
 from ..models.library import LIBRARY, STRUCTURAL, band_limited, columns
 from .locate import EquationLocation, Location, Shape, _solve_normal
 
@@ -50,6 +52,10 @@ class Description:
     phrase_text: str
     region: dict
     contenders: list = field(default_factory=list)   # by BIC, spline and none included
+    # the best contender of the other origin (a class when a catalogue term is named, a
+    # catalogue term when a class is) within positive BIC evidence of the best: the
+    # criterion cannot tell them apart, so the loop lets the diagram decide
+    tie: Contender | None = None
 
     def phrase(self) -> str:
         return self.phrase_text
@@ -60,7 +66,8 @@ class Description:
                 "region": self.region, "shape": self.best.shape,
                 "coefficients": self.best.coefficients,
                 "spline": None if self.spline is None else self.spline.to_dict(),
-                "evidence": [c.to_dict() for c in self.contenders]}
+                "evidence": [c.to_dict() for c in self.contenders],
+                "tie": None if self.tie is None else self.tie.to_dict()}
 
 
 def _fit_with(design, yn, skip: int, C: np.ndarray):
@@ -82,8 +89,12 @@ def describe_shape(system: str, loc: EquationLocation, shape: Shape, S: dict) ->
     design, yn, scale, _, n_eff = loc.design
     i = [s.key for s in design.smooths].index(shape.state)
     n = len(yn)
-    u = np.asarray(S[shape.state], float)
-    name, role = STATES[system][shape.state]
+    state, times = state_parts(shape.state)
+    u = np.asarray(S[state], float)
+    name, role = STATES[system][state]
+    if times is not None:
+        # a coefficient of the equation's velocity depending on ``name``: a damping
+        name, role = shape.name, VELOCITY
     eq_name = loc.name
     out = []
 
@@ -106,7 +117,8 @@ def describe_shape(system: str, loc: EquationLocation, shape: Shape, S: dict) ->
     for f in FORMS:
         best_over(f.thresholds(u) if f.thresholds else (None,), lambda d, f=f: (
             located_key(system, loc.equation, shape.state, f.key), f.label, False,
-            band_limited(np.asarray(f.formula(np, u, d), float), per_orbit), f.n_parameters))
+            band_limited(np.asarray(form_columns(np, f, S, shape.state, d), float), per_orbit),
+            f.n_parameters))
     for e in LIBRARY[system]:
         if e.equation == loc.equation and e.kind == STRUCTURAL and e.formula is not None:
             best_over(e.grid(S) if e.grid else (None,), lambda d, e=e: (
@@ -126,23 +138,43 @@ def describe_shape(system: str, loc: EquationLocation, shape: Shape, S: dict) ->
     if cat is not None and cat.bic <= best.bic + POSITIVE and cat.n_parameters <= best.n_parameters:
         best = cat
     named = best.bic <= spline.bic + VERY_STRONG
+    top = out[0].bic
+    tie = next((c for c in out if c.catalogue != best.catalogue
+                and c.bic <= top + POSITIVE), None)
     coef = best.coefficients[0] if best.coefficients else 0.0
     if best.catalogue:
         phrase = f"{best.label} (catalogue)"
         region = {name: [None, None]}
     else:
         f = next(f for f in FORMS if best.key.endswith("." + f.key))
-        phrase = f.phrase(name, role, coef, best.shape)
-        region = f.region(name, best.shape)
+        if times is None:
+            phrase = f.phrase(name, role, coef, best.shape)
+            region = f.region(name, best.shape)
+        else:
+            phrase = _damping_phrase(f, system, state, times, coef, best.shape)
+            region = f.region(STATES[system][state][0], best.shape)
     if not named:
         phrase = f"an effect in {eq_name} depending on {name}, shaped like {phrase}"
         region = {name: shape.region.get(name)}
     contenders = sorted(out + [spline, none], key=lambda c: c.bic)
-    cols = band_limited(np.asarray(SPLINE.formula(np, u, SPLINE.thresholds(u)[0]), float),
-                        per_orbit)
+    cols = band_limited(np.asarray(form_columns(np, SPLINE, S, shape.state,
+                                                SPLINE.thresholds(u)[0]), float), per_orbit)
     as_term = consider(located_key(system, loc.equation, shape.state, SPLINE.key),
                        SPLINE.label, False, cols, SPLINE.n_parameters, SPLINE.thresholds(u)[0])
-    return Description(eq_name, name, role, best, as_term, named, phrase, region, contenders)
+    return Description(eq_name, name, role, best, as_term, named, phrase, region, contenders,
+                       tie if named else None)
+
+
+def _damping_phrase(f, system: str, state: str, times: str, c: float, d) -> str:
+    """A damping of ``times`` whose coefficient is the form ``f`` of ``state``."""
+    x, v = STATES[system][state][0], STATES[system][times][0]
+    what = "damping" if c < 0 else "negative damping"
+    if f.key == SPLINE.key:
+        return f"{what} of {v} depending on {x} (regression spline)"
+    term = f.terms[0].replace("u", x)
+    if d is not None:
+        term = term.replace("d", f"{d:.4g}")
+    return f"{what} of {v} depending on {x}: coefficient ~ {term}"
 
 
 def describe(location: Location, S: dict) -> Location:
@@ -176,11 +208,18 @@ def effect_fields(system: str, key: str, shape, coefficients, locations: list,
     out = {"equation": EQUATIONS[system][e.equation]}
     parsed = parse_located_key(system, key)
     if parsed is not None:
-        _, state, f = parsed
+        _, key_state, f = parsed
+        state, times = state_parts(key_state)
         name, role = STATES[system][state]
         c = float(coefficients[0]) if len(coefficients) else 0.0
-        out.update(states=[name], shape_class=f.label, description=f.phrase(name, role, c, shape),
-                   region=f.region(name, shape))
+        if times is None:
+            out.update(states=[name], shape_class=f.label,
+                       description=f.phrase(name, role, c, shape), region=f.region(name, shape))
+        else:
+            out.update(states=[name, STATES[system][times][0]],
+                       shape_class=f"{f.label} (damping coefficient)",
+                       description=_damping_phrase(f, system, state, times, c, shape),
+                       region=f.region(name, shape))
         return out
     states = _depends_on(system, key, shape, S) if S is not None else []
     out.update(states=states, shape_class=e.kind, description=e.name,

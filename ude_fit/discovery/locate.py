@@ -39,7 +39,7 @@ import numpy as np
 from scipy.interpolate import BSpline
 
 from .._fourier import K
-from ..models.forms import EQUATIONS, STATES
+from ..models.forms import EQUATIONS, STATES, located_states, state_parts
 from ..models.library import LIBRARY, STRUCTURAL, HIDDEN, columns, states_of
 from ..training.identify import TrainingData, regression
 from .explain import _fold_ids
@@ -152,27 +152,42 @@ class _Smooth:
     key: str
     lo: float
     hi: float
-    trend: np.ndarray             # (2, m): B's projection coefficients on [1, x]
-    X: np.ndarray                 # detrended basis on the samples, scaled
+    trend: np.ndarray             # B's projection coefficients on [1, x] (or on [1])
+    X: np.ndarray                 # detrended basis on the samples (times v), scaled
     D: np.ndarray                 # penalty root (scaled alike)
     scale: float
 
     def basis(self, x: np.ndarray) -> np.ndarray:
+        """The shape's basis on ``x`` (a coefficient function for a shape times v)."""
         B, _ = spline_basis(x, self.lo, self.hi)
-        L = np.stack([np.ones_like(x), x], 1)
+        L = np.stack([np.ones_like(x), x], 1)[:, :len(self.trend)]
         return (B - L @ self.trend) / self.scale
 
 
-def _smooth(key: str, x: np.ndarray) -> _Smooth | None:
+def _smooth(key: str, x: np.ndarray, times: np.ndarray | None = None) -> _Smooth | None:
+    """A shape of x, or with ``times`` a coefficient f(x) multiplying ``times`` (a damping
+    depending on x): then only its constant is projected out (a constant times v is the
+    linear damping the mechanistic model has), its slope is a bilinear x v, a shape."""
     lo, hi = float(np.min(x)), float(np.max(x))
     if not hi > lo:
         return None
     B, D = spline_basis(x, lo, hi)
-    L = np.stack([np.ones_like(x), x], 1)
-    trend = np.linalg.lstsq(L, B, rcond=None)[0]
-    X = B - L @ trend
+    if times is None:
+        L = np.stack([np.ones_like(x), x], 1)
+        trend = np.linalg.lstsq(L, B, rcond=None)[0]
+        X = B - L @ trend
+    else:
+        v = np.asarray(times, float)[:, None]
+        trend = np.linalg.lstsq(v, B * v, rcond=None)[0]
+        X = (B - trend) * v
     scale = float(np.sqrt(np.mean(X ** 2))) or 1.0
     return _Smooth(key, lo, hi, trend, X / scale, D, scale)
+
+
+def _smooth_of(key: str, S: dict) -> _Smooth | None:
+    state, times = state_parts(key)
+    return _smooth(key, np.asarray(S[state], float),
+                   None if times is None else np.asarray(S[times], float))
 
 
 def _solve_normal(G, g):
@@ -259,13 +274,13 @@ def locate_equation(S: dict, y: np.ndarray, groups: np.ndarray, *, equation: int
     per_orbit = per_orbit or int(S.get("n", n))
     scale = float(np.sqrt(np.mean(y ** 2))) or 1.0
     yn = y / scale
-    lin = [np.ones(n)] + [np.asarray(S[k], float) for k in states]
+    lin = [np.ones(n)] + [np.asarray(S[k], float) for k in states if "*" not in k]
     cols = [base[:, np.any(base != 0, axis=0)]] + [np.stack(lin, 1)]
     if nuisance is not None and nuisance.size:
         cols.append(nuisance)
     N = np.concatenate(cols, 1)
     N = N / np.where(np.sqrt(np.mean(N ** 2, 0)) > 0, np.sqrt(np.mean(N ** 2, 0)), 1.0)
-    smooths = [s for s in (_smooth(k, np.asarray(S[k], float)) for k in states) if s]
+    smooths = [s for s in (_smooth_of(k, S) for k in states) if s]
     fid = _fold_ids(groups, min(folds, len(np.unique(groups))), np.random.default_rng(seed))
     design = _Design(N, smooths, yn, fid)
     design.choose_lambdas(yn, fid)
@@ -299,11 +314,11 @@ def locate_equation(S: dict, y: np.ndarray, groups: np.ndarray, *, equation: int
         Bg = sm.basis(grid)
         value = Bg @ b[sl]
         band = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", Bg, G[sl, sl], Bg), 0) * sigma2)
-        x = np.asarray(S[sm.key], float)
+        x = np.asarray(S[state_parts(sm.key)[0]], float)
         fs = sm.X @ b[sl]
         share = float(np.sum(fs ** 2)) / ss0 if ss0 > 0 else 0.0
         shape = Shape(equation, sm.key, states[sm.key], grid, value * scale, band * scale,
-                      x, (fs + res) * scale, design.lams[i], edf,
+                      x, _partial(sm.key, S, (fs + res) * scale), design.lams[i], edf,
                       gain * scale ** 2, se * scale ** 2, p,
                       bool(gain > se and p < LEVEL / len(smooths)), share)
         shape.region = {shape.name: _region(grid, value, band)}
@@ -313,6 +328,18 @@ def locate_equation(S: dict, y: np.ndarray, groups: np.ndarray, *, equation: int
                            float(np.sqrt(np.mean(res ** 2))) * scale)
     loc.design = (design, yn, scale, fid, n_eff)
     return loc
+
+
+def _partial(key: str, S: dict, r: np.ndarray) -> np.ndarray:
+    """The partial residual as the shape reads it: for a coefficient of a velocity, the
+    force over the velocity where the velocity is at least its median size (nan elsewhere,
+    where the quotient is noise)."""
+    times = state_parts(key)[1]
+    if times is None:
+        return r
+    v = np.asarray(S[times], float)
+    big = np.abs(v) >= np.median(np.abs(v))
+    return np.where(big, r / np.where(big, v, 1.0), np.nan)
 
 
 def _f_test(rss0: float, rss1: float, edf: float, n: int, n_eff: float,
@@ -350,9 +377,15 @@ def nuisance_columns(system: str, S: dict, equation: int) -> np.ndarray:
 
 
 def locate(data: TrainingData, system: str, *, added: tuple = (), seed: int = 0,
-           folds: int = 10, target: np.ndarray | None = None) -> Location:
+           folds: int = 10, target: np.ndarray | None = None,
+           damping_shapes: bool = False) -> Location:
     """Shape functions of every state per equation of what the (refined) mechanistic model
-    leaves; ``target`` (N, n_eq): forces to locate instead (e.g. a UDE's correction)."""
+    leaves; ``target`` (N, n_eq): forces to locate instead (e.g. a UDE's correction).
+    ``damping_shapes``: also each displacement as the coefficient of the equation's own
+    velocity (position-dependent damping, ``forms.located_states``). Off by default: fitted
+    together with the single states, a shape of h' and the coefficient of h' depending on h
+    share what they explain (concurvity), and on the aerofoil's direction-dependent heave
+    damping neither was significant any more (measured, docs/experiments.md)."""
     A, b, _, _ = regression(data, system, effects=tuple(added))
     if target is not None:
         b = -np.asarray(target, float).reshape(b.shape)
@@ -362,7 +395,8 @@ def locate(data: TrainingData, system: str, *, added: tuple = (), seed: int = 0,
     eqs = []
     for eq in range(b.shape[1]):
         loc = locate_equation(S, -b[:, eq], groups, equation=eq, base=A[:, eq, :],
-                              states=STATE_NAMES[system],
+                              states=(located_states(system, eq) if damping_shapes
+                                      else STATE_NAMES[system]),
                               nuisance=nuisance_columns(system, S, eq), folds=folds,
                               seed=seed + eq, per_orbit=n)
         loc.name = EQUATION_NAMES[system][eq]

@@ -197,15 +197,12 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
         ex = explain(data, system, added=tuple(added), seed=seed, bootstrap=bootstrap)
         explanations.append(ex)
         catalogue = ex.top() if ex.significant else None
-        located = spline = None
+        located = None
         if locate_shapes:
             loc = describe_shapes(locate(data, system, added=tuple(added), seed=seed), S)
             locations.append(loc)
-            located, spline = _located_candidate(loc, system), _spline_candidate(loc)
-            if located is not None and catalogue is not None \
-                    and located["key"] == catalogue["key"]:
-                located = None
-        candidates, why_tried = [c for c in (catalogue, located, spline) if c is not None], None
+            located = _located_candidates(loc, system) + [_spline_candidate(loc)]
+        candidates, why_tried = _distinct([catalogue, *(located or [])]), None
         if not candidates:
             # nothing beats the noise: a linear term may still be worth a try on the
             # diagram (kept only if it improves it); a structural effect never is
@@ -228,9 +225,11 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                                                      ref, ref_source, ident)))
         best = tried[0]
         for t in tried[1:]:
-            # the spline (many parameters) must beat a named form as the loop's own rule
-            # asks of any addition; a named candidate just has to do better
-            gain = min_gain if t[0].get("spline") else 0.0
+            # the spline (many parameters), and a class the criterion could not tell from
+            # the catalogue term named (a tie: the catalogue term explains as much), must
+            # beat it as the loop's own rule asks of any addition; a named candidate just
+            # has to do better
+            gain = min_gain if t[0].get("spline") or t[0].get("tie") else 0.0
             if _better(t[3].metrics, best[3].metrics, gain):
                 best = t
         for cand, _, _, st in tried:
@@ -275,15 +274,32 @@ def _spline_candidate(loc: Location) -> dict | None:
             f"{d.state})", "shape": d.spline.shape, "kind": "located shape", "spline": True}
 
 
-def _located_candidate(loc: Location, system: str) -> dict | None:
-    """The top significant located shape's description as a loop candidate."""
+def _located_candidates(loc: Location, system: str) -> list:
+    """The top significant located shape's description as loop candidates: the contender
+    named, and the one of the other origin (catalogue or class) it ties with by BIC."""
     sig = loc.significant()
     if not sig or sig[0].description is None:
-        return None
+        return []
     d = sig[0].description
-    return {"key": d.best.key, "name": d.phrase(), "shape": d.best.shape,
-            "kind": (effect(system, d.best.key).kind if d.best.catalogue
-                     else "located shape"), "located": d.to_dict()}
+    out = []
+    for c, name in ((d.best, d.phrase()), (d.tie, None)):
+        if c is None:
+            continue
+        out.append({"key": c.key, "name": name or f"{c.label} (tied by BIC with "
+                    f"{d.best.label}) in {d.state}", "shape": c.shape,
+                    "kind": effect(system, c.key).kind if c.catalogue else "located shape",
+                    "located": d.to_dict(), "tie": name is None})
+    return out
+
+
+def _distinct(candidates: list) -> list:
+    """The candidates that are there, each key once (the first kept)."""
+    out, seen = [], set()
+    for c in candidates:
+        if c is not None and c["key"] not in seen:
+            seen.add(c["key"])
+            out.append(c)
+    return out
 
 
 def fit_udes(result: LoopResult, ds: OrbitDataset, opts, *, reference=None, progress=None):

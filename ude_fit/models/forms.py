@@ -30,6 +30,40 @@ STATES = {"flutter": {"h": ("h", DISPLACEMENT), "al": ("alpha", DISPLACEMENT),
           "oscillator": {"x": ("x", DISPLACEMENT), "xd": ("x_dot", VELOCITY),
                          "w": ("omega", PARAMETER)}}
 EQUATIONS = {"flutter": ("heave", "pitch"), "oscillator": ("x",)}
+# each equation's own velocity: a damping whose coefficient depends on a displacement
+# (position-dependent damping, c(h) h') is a shape of that displacement times it
+OWN_VELOCITY = {"flutter": ("hd", "ad"), "oscillator": ("xd",)}
+
+
+def state_parts(key: str) -> tuple[str, str | None]:
+    """``"h"`` -> ("h", None); ``"h*hd"`` (a coefficient of h multiplying h') -> ("h", "hd")."""
+    state, _, times = key.partition("*")
+    return state, times or None
+
+
+def state_label(system: str, key: str) -> str:
+    """The name a report uses: ``h``, or ``h_dot(h)`` for a damping of h' depending on h."""
+    state, times = state_parts(key)
+    name = STATES[system][state][0]
+    return name if times is None else f"{STATES[system][times][0]}({name})"
+
+
+def located_states(system: str, equation: int) -> dict:
+    """{key: label} the locator fits shapes of in one equation: every state alone, and
+    every displacement as the coefficient of the equation's own velocity."""
+    out = {k: v[0] for k, v in STATES[system].items()}
+    own = OWN_VELOCITY[system][equation]
+    for k, (_, role) in STATES[system].items():
+        if role == DISPLACEMENT:
+            out[f"{k}*{own}"] = state_label(system, f"{k}*{own}")
+    return out
+
+
+def form_columns(xp, f, S, key: str, d):
+    """A form's columns for a located state key (times the velocity it multiplies)."""
+    state, times = state_parts(key)
+    X = f.formula(xp, S[state], d)
+    return X if times is None else X * S[times][..., None]
 
 
 def _words(role: str, c: float) -> tuple[str, str]:
@@ -184,8 +218,9 @@ def form(key: str) -> Form:
 
 
 def located_key(system: str, equation: int, state: str, form_key: str) -> str:
-    """The effect key of a form in an equation and a state, e.g. ``heave.h.above``."""
-    return f"{EQUATIONS[system][equation]}.{STATES[system][state][0]}.{form_key}"
+    """The effect key of a form in an equation and a state, e.g. ``heave.h.above``, or
+    ``heave.h_dot(h).quadratic`` for a damping of h' whose coefficient is quadratic in h."""
+    return f"{EQUATIONS[system][equation]}.{state_label(system, state)}.{form_key}"
 
 
 def parse_located_key(system: str, key: str):
@@ -193,7 +228,8 @@ def parse_located_key(system: str, key: str):
     parts = key.split(".")
     if len(parts) != 3 or parts[0] not in EQUATIONS[system]:
         return None
-    by_name = {v[0]: k for k, v in STATES[system].items()}
+    equation = EQUATIONS[system].index(parts[0])
+    by_name = {v: k for k, v in located_states(system, equation).items()}
     if parts[1] not in by_name or parts[2] not in {f.key for f in FORMS + (SPLINE,)}:
         return None
-    return EQUATIONS[system].index(parts[0]), by_name[parts[1]], form(parts[2])
+    return equation, by_name[parts[1]], form(parts[2])

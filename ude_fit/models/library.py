@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._fourier import K
-from .forms import EQUATIONS, STATES, parse_located_key
+from .forms import EQUATIONS, form_columns, parse_located_key, state_label, state_parts
 from .mechanistic import model_class
 
 
@@ -293,12 +293,15 @@ def located_effect(system: str, key: str) -> Effect | None:
     parsed = parse_located_key(system, key)
     if parsed is None:
         return None
-    equation, state, f = parsed
-    name = STATES[system][state][0]
-    return Effect(key, f"{f.label} in {name} ({EQUATIONS[system][equation]} equation)",
-                  equation, tuple(t.replace("u", name).replace("c", f"({name}/d)")
+    equation, key_state, f = parsed
+    state, times = state_parts(key_state)
+    name = state_label(system, state)
+    label = state_label(system, key_state)
+    factor = "" if times is None else " " + state_label(system, times)
+    return Effect(key, f"{f.label} in {label} ({EQUATIONS[system][equation]} equation)",
+                  equation, tuple(t.replace("u", name).replace("c", f"({name}/d)") + factor
                                   for t in f.terms),
-                  lambda xp, S, d: f.formula(xp, S[state], d), STRUCTURAL,
+                  lambda xp, S, d: form_columns(xp, f, S, key_state, d), STRUCTURAL,
                   "d" if f.thresholds else "",
                   (lambda S: f.thresholds(np.asarray(S[state], float))) if f.thresholds
                   else None)

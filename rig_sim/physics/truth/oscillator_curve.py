@@ -9,7 +9,7 @@ import numpy as np
 
 from ..oscillator import OscillatorParams
 from .continuation import _continue, _crossings, _fixed_parameter_solve, _locate_fold, _Point
-from .shooting import _OscillatorProblem, effect_vector, first_harmonic
+from .shooting import _OscillatorProblem, compiled_plugin, effect_vector, first_harmonic
 
 # --------------------------------------------------------------------------------------
 # oscillator: S-curve at fixed frequency
@@ -56,7 +56,7 @@ def _oscillator_record(problem: _OscillatorProblem, pt: _Point) -> dict:
 def oscillator_scurve(freq_hz: float, params: OscillatorParams = OscillatorParams(),
                       effects=None, *, Phi_start: float = 0.1, Phi_max: float | None = None,
                       amp_max: float = 0.05, n_steps: int = 600, ds_max: float = 0.25,
-                      max_points: int = 800) -> ForcedCurve:
+                      max_points: int = 800, plugin=None) -> ForcedCurve:
     """Continue the forced periodic orbits at ``freq_hz`` in the forcing amplitude Phi.
 
     Starts at Phi_start (m/s^2) from rest as the Newton guess (nearly linear there),
@@ -64,7 +64,10 @@ def oscillator_scurve(freq_hz: float, params: OscillatorParams = OscillatorParam
     with the period fixed at 1/f, through any folds, until Phi exceeds Phi_max
     (default: the shaker limit), Phi turns negative, the amplitude exceeds amp_max (m)
     or max_points orbits are traced. Scaled unknowns: x by 1 mm, x' by w x 1 mm,
-    current by the linear coil response to 1 mm, Phi by 5 m/s^2.
+    current by the linear coil response to 1 mm, Phi by 5 m/s^2. A user ``plugin`` force
+    (the rig's ``--effect-plugin`` callable returning (F,) in N, time-invariant and
+    compilable, see :func:`compiled_plugin`) is integrated with the rest; it must vanish
+    at rest (the continuation starts from rest).
     """
     E = effect_vector("oscillator", effects)
     if Phi_max is None:
@@ -73,7 +76,8 @@ def oscillator_scurve(freq_hz: float, params: OscillatorParams = OscillatorParam
     sx = 1e-3
     si = params.theta * omega * sx / math.hypot(params.R, omega * params.L)
     su = np.array([sx, omega * sx, si, 5.0])
-    problem = _OscillatorProblem(params, E, freq_hz, n_steps, su)
+    force = None if plugin is None else compiled_plugin(plugin, ndof=1)
+    problem = _OscillatorProblem(params, E, freq_hz, n_steps, su, force)
     first = _fixed_parameter_solve(problem, np.zeros(4), Phi_start / su[3])
     if first is None:
         raise RuntimeError(f"oscillator_scurve: no orbit at Phi = {Phi_start} ({freq_hz} Hz)")

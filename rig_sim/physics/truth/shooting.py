@@ -122,19 +122,21 @@ def _flutter_shoot_plugin(Y0, Ks, Ts, E, n, H, force, scale):
     return out
 
 
-def compiled_plugin(func):
+def compiled_plugin(func, ndof: int = 2):
     """The plugin compiled for the truth's integrators (numba), or ValueError saying why
     it cannot be: the truth runs the plugin inside compiled code, so it must be plain
-    numerical Python that ignores its ``params`` argument."""
+    numerical Python that ignores its ``params`` argument. ``ndof``: 2 for the aerofoil
+    (heave force, pitch moment), 1 for the oscillator (the force on the tip, N)."""
     from numba import njit as _njit
     f = _njit(func)
     try:
-        out = np.asarray(f(0.0, np.zeros(2), np.zeros(2), None), dtype=float)
+        out = np.asarray(f(0.0, np.zeros(ndof), np.zeros(ndof), None), dtype=float)
     except Exception as exc:  # noqa: BLE001 - numba's typing errors are many kinds
         raise ValueError(f"the plugin cannot be compiled for the truth analysis "
                          f"({type(exc).__name__})") from None
-    if out.shape != (2,):
-        raise ValueError("the plugin must return (heave force, pitch moment)")
+    if out.shape != (ndof,):
+        raise ValueError("the plugin must return (heave force, pitch moment)" if ndof == 2
+                         else "the plugin must return (force,)")
     return f
 
 
@@ -178,6 +180,44 @@ def _oscillator_shoot(Y0, Phis, omega, K, E, mass, n, H):
             oscillator_deriv(tmp, k4, a1, 0.0, K, E, mass)
             for i in range(3):
                 y[i] += dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
+        for i in range(3):
+            out[j, i] = y[i]
+    return out
+
+
+@njit
+def _oscillator_shoot_plugin(Y0, Phis, omega, K, E, mass, n, H, force):
+    """As :func:`_oscillator_shoot`, with a compiled plugin force(t, q, qdot, None) ->
+    (F,) (N) added at every stage. The rig calls the plugin with its clock; the truth with
+    the time within the period (a plugin must not depend on time for the two to agree).
+    Not cached: a compiled function is an argument."""
+    m = Y0.shape[0]
+    out = np.empty_like(Y0)
+    y = np.empty(3)
+    tmp = np.empty(3)
+    ks = np.empty((4, 3))
+    q = np.empty(1)
+    qd = np.empty(1)
+    dt = 2.0 * np.pi / omega / n
+    for j in range(m):
+        phi = Phis[j]
+        for i in range(3):
+            y[i] = Y0[j, i]
+        for s in range(n):
+            if j == 0:
+                for i in range(3):
+                    H[s, i] = y[i]
+            t = s * dt
+            for st in range(4):
+                c = 0.0 if st == 0 else (dt if st == 3 else 0.5 * dt)
+                for i in range(3):
+                    tmp[i] = y[i] if st == 0 else y[i] + c * ks[st - 1, i]
+                q[0] = tmp[0]
+                qd[0] = tmp[1]
+                f = force(t + c, q.copy(), qd.copy(), None)
+                oscillator_deriv(tmp, ks[st], phi * np.cos(omega * (t + c)), f[0], K, E, mass)
+            for i in range(3):
+                y[i] += dt / 6.0 * (ks[0, i] + 2.0 * ks[1, i] + 2.0 * ks[2, i] + ks[3, i])
         for i in range(3):
             out[j, i] = y[i]
     return out
@@ -277,8 +317,9 @@ class _OscillatorProblem:
     par_index = 3
 
     def __init__(self, params: OscillatorParams, E: np.ndarray, freq_hz: float,
-                 n_steps: int, su: np.ndarray):
+                 n_steps: int, su: np.ndarray, plugin=None):
         self.p = params
+        self.plugin = plugin
         self.E = E
         self.omega = 2.0 * np.pi * float(freq_hz)
         self.K = oscillator_kernel_params(params)
@@ -295,8 +336,12 @@ class _OscillatorProblem:
                 U[1 + 2 * j, j] += _FD_STEP * self.su[j]
                 U[2 + 2 * j, j] -= _FD_STEP * self.su[j]
         H = np.empty((self.n, 3))
-        Y1 = _oscillator_shoot(np.ascontiguousarray(U[:, :3]), np.ascontiguousarray(U[:, 3]),
-                               self.omega, self.K, self.E, self.p.mass, self.n, H)
+        Y0, Phis = np.ascontiguousarray(U[:, :3]), np.ascontiguousarray(U[:, 3])
+        if self.plugin is None:
+            Y1 = _oscillator_shoot(Y0, Phis, self.omega, self.K, self.E, self.p.mass, self.n, H)
+        else:
+            Y1 = _oscillator_shoot_plugin(Y0, Phis, self.omega, self.K, self.E, self.p.mass,
+                                          self.n, H, self.plugin)
         sy = self.su[:3]
         R = (Y1 - U[:, :3]) / sy
         J = None
