@@ -87,8 +87,8 @@ def add_fit_arguments(p) -> None:
                    help="random starts; the best adequate one is kept (default 5)")
     p.add_argument("--starts-together", action="store_true",
                    help="train the network's starts as one vectorised ensemble (each start "
-                   "the same as alone; faster for cheap losses, slower with the energy "
-                   "penalties)")
+                   "the same as alone; on a 2-core CPU measured 2.6x slower than one after "
+                   "another, see docs/benchmarks.md)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--width", type=positive_int("--width"), default=12,
                    help="hidden units per layer of the NN (default 12)")

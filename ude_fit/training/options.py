@@ -133,9 +133,8 @@ class FitOptions:
     training: str = "periodic"
     starts: int = 5
     # the NN starts trained as one vectorised ensemble (training/optimise.py): the same
-    # result per start; faster where a loss evaluation is cheap (per-operation overhead
-    # dominates), slower where it is heavy (the energy penalties: a batched line search
-    # runs as long as its slowest start)
+    # result per start, but on a 2-core CPU slower than one after another (the batched
+    # line search runs as long as its slowest start; benchmarks/ude_benchmark.py)
     starts_together: bool = False
     seed: int = 0
     samples: int = 32                 # samples per period of each averaged orbit
