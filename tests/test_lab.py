@@ -107,7 +107,10 @@ def test_compose_file_services_run_as_local_processes(tmp_path, small_campaign, 
         "service_completed_successfully"
     assert services["rig"]["healthcheck"]["test"][1:3] == ["cbc-campaign", "identify"]
 
-    env = {"LAB_CAMPAIGN": "/app/" + "CAMPAIGN", "LAB_STARTS": "1"}
+    # two starts: on the 4 points of this small campaign one start's diagram can miss every
+    # point (the training's outcome moves with rounding from run to run), and then the fit
+    # service rightly exits 1 (no UDE kept)
+    env = {"LAB_CAMPAIGN": "/app/" + "CAMPAIGN", "LAB_STARTS": "2"}
     port = str(_free_port())
     data = tmp_path / "data"
     data.mkdir()

@@ -312,19 +312,24 @@ def test_nan_loss_raises_diverged():
 
 def test_diverged_start_is_dropped_not_kept(flutter_fit, monkeypatch):
     ds = load([flutter_fit["data"]], "flutter")
-    real = fit_module.train_ensemble
+    real = fit_module.train_ude
+    calls = []
 
     def first_diverges(*a, **kw):
-        results = real(*a, **kw)
-        return [Diverged("periodic: loss is not finite at Adam step 25")] + results[1:]
+        # the starts train one after another by default: the first one's training fails
+        calls.append(kw["key"])
+        if len(calls) == 1:
+            raise Diverged("periodic: loss is not finite at Adam step 25")
+        return real(*a, **kw)
 
-    monkeypatch.setattr(fit_module, "train_ensemble", first_diverges)
+    monkeypatch.setattr(fit_module, "train_ude", first_diverges)
     cfg = TrainConfig(equation_steps=200, adam_steps=50, lbfgs_steps=10)
     res = fit(ds, FitOptions("flutter", starts=2, train=cfg, mechanistic="equation"))
     st = res.to_json()["starts"]
     assert st["dropped"] == [{"start": 1, "reason": "periodic: loss is not finite at Adam step 25"}]
     assert st["kept"] == 2 and st["completed"] == 1
     assert not st["records"][0]["adequate"]
+    assert len(calls) == 2
 
 
 def test_empty_dataset_is_an_error(flutter_fit):

@@ -108,6 +108,16 @@ class FitResult:
         """How many starts are adequate."""
         return int(sum(s.adequate for s in self.starts))
 
+    def why_no_ude(self) -> str | None:
+        """Why no UDE was kept (None when one was): every start diverged, or the trained
+        ones' diagrams have no orbit at any measured point."""
+        if self.ude is not None:
+            return None
+        if all(not s.ok for s in self.starts):
+            return "every start diverged; no UDE"
+        return ("no start's diagram has an orbit at any measured point (with its stability); "
+                "no UDE kept")
+
     def to_json(self) -> dict:
         """The metrics document (metrics.json less provenance, options, figures)."""
         opts, ident, best = self.options, self.identification, self.kept

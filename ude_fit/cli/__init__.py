@@ -11,8 +11,8 @@
 
 One module per subcommand: it parses, calls the library and prints. User mistakes (a bad
 file, an empty dataset, a bad option) end with one line on stderr and exit status 2,
-before anything is written; a fit in which every start diverged ends with status 1 after
-writing what it has. The command line runs JAX in float64 (importing ude_fit does not).
+before anything is written; a fit that keeps no UDE (every start diverged, or no start's
+diagram reaches a measured point) ends with status 1 after writing what it has, and says which. The command line runs JAX in float64 (importing ude_fit does not).
 """
 
 from __future__ import annotations

@@ -33,6 +33,6 @@ def run(args, argv) -> int:
           f"UDE {pct(kept.metrics.summary.branch_rms) if kept else 'no model'}; adequate "
           f"starts {res.adequate}/{opts.starts}")
     if res.ude is None:
-        print("ude-fit: every start diverged; no UDE (see report.md)", file=sys.stderr)
+        print(f"ude-fit: {res.why_no_ude()} (see report.md)", file=sys.stderr)
         return 1
     return 0

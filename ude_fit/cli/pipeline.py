@@ -40,6 +40,6 @@ def run(args, argv) -> int:
     print(f"wrote {out}/: report.md, metrics.json, diagram.png, fit/, loop/")
     print(headline_text(doc["headline"]))
     if result.fit.ude is None:
-        print("ude-fit: every start diverged; no UDE (see fit/report.md)", file=sys.stderr)
+        print(f"ude-fit: {result.fit.why_no_ude()} (see fit/report.md)", file=sys.stderr)
         return 1
     return 0
