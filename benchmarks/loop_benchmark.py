@@ -18,7 +18,11 @@ and a polynomial library of the states, degrees 2 and 3 (non-catalogue cases). I
 the candidate with the largest normalised coefficient (for the non-catalogue cases: its
 equation and the states it reads); its false discoveries are the catalogue effects it keeps.
 
-    python3 benchmarks/loop_benchmark.py [--seeds N] [--only catalogue|located]
+With ``--ude STARTS`` each non-catalogue run also fits a UDE on the mechanistic model and
+locates its learnt correction the same way (the UDE route): where it puts the effect and
+whether that agrees with the residual route.
+
+    python3 benchmarks/loop_benchmark.py [--seeds N] [--only catalogue|located] [--ude S]
 """
 
 from __future__ import annotations
@@ -163,9 +167,26 @@ def stlsq_locate(data, system: str) -> dict:
     return out
 
 
-def run_located(seeds: int) -> dict:
+def _ude_route(res, ds, system: str, seed: int, starts: int) -> dict:
+    """A UDE on the loop's mechanistic model; its correction located as the residual was."""
+    from ude_fit.discovery.loop import compare_ude_route
+    from ude_fit.fitting import FitOptions, fit
+    t0 = time.perf_counter()
+    f = fit(ds, FitOptions(system=system, starts=starts, seed=seed),
+            mechanistic=res.before.model)
+    compare_ude_route(res, ds, f, seed=seed)
+    r = res.routes
+    return {"seconds": round(time.perf_counter() - t0, 2), "starts": starts,
+            "kept_ude": f.ude is not None, "agree": None if r is None else r.agree,
+            "ude_located": None if r is None else [r.ude.equation, r.ude.state],
+            "ude_description": None if r is None else r.ude.description}
+
+
+def run_located(seeds: int, ude_starts: int = 0) -> dict:
     """The non-catalogue cases of benchmarks/locate_cases.py through the loop with the
-    located shapes, and the STLSQ peer on the same residual."""
+    located shapes, and the STLSQ peer on the same residual; with ``ude_starts`` also the
+    UDE route (a UDE of that many starts on the mechanistic model, its correction located)
+    and whether it agrees with the residual route."""
     from benchmarks.locate_cases import CASES as LOCATED, write_case_campaign
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -193,6 +214,8 @@ def run_located(seeds: int) -> dict:
                     "before": m["before"]["branch_rms_with_missed"],
                     "after": m["after"]["branch_rms_with_missed"],
                     "loop_seconds": round(secs, 2), "stlsq": peer})
+                if ude_starts:
+                    recs[-1]["ude_route"] = _ude_route(res, ds, system, seed, ude_starts)
             rows[case] = {
                 "planted": [equation, state], "seeds": seeds,
                 "located_right": sum(r["located"] == [equation, state] for r in recs),
@@ -205,6 +228,11 @@ def run_located(seeds: int) -> dict:
                 "median_after_over_before": float(np.median([r["after"] / r["before"]
                                                              for r in recs])),
                 "median_loop_seconds": float(np.median([r["loop_seconds"] for r in recs])),
+                "routes_agree": sum(bool((r.get("ude_route") or {}).get("agree"))
+                                    for r in recs) if ude_starts else None,
+                "ude_route_right": sum((r.get("ude_route") or {}).get("ude_located")
+                                       == [equation, state] for r in recs)
+                if ude_starts else None,
                 "runs": recs}
             print(f"{case}: done", file=sys.stderr, flush=True)
     return rows
@@ -272,13 +300,16 @@ def main() -> None:
     p.add_argument("--seeds", type=int, default=3, help="campaign seeds per case (default 3)")
     p.add_argument("--only", choices=("catalogue", "located"),
                    help="run only the catalogue or only the non-catalogue cases")
+    p.add_argument("--ude", type=int, default=0, metavar="STARTS",
+                   help="non-catalogue cases: also the UDE route with a UDE of STARTS "
+                   "starts, and whether it agrees with the residual route (default 0: not)")
     args = p.parse_args()
     from ude_fit.model_file import _version
     out = {"benchmark": "loop", "version": _version(), "sigma": 0.02}
     if args.only != "located":
         out["cases"] = run(args.seeds)
     if args.only != "catalogue":
-        out["located"] = run_located(args.seeds)
+        out["located"] = run_located(args.seeds, args.ude)
     print(json.dumps(out, indent=1))
 
 

@@ -5,15 +5,13 @@ from __future__ import annotations
 
 import os
 
-import jax
-import numpy as np
-
 from ..discovery.explain import explain
+from ..discovery.routes import learnt_correction
 from ..model_file import load_model
 from ..report.files import provenance, write_json, write_text
 from ..report.loop_markdown import candidates_section, render_explain
 from ..report.plots import parameter_label, plot_residuals
-from ..training.identify import augment, training_data
+from ..training.identify import training_data
 from .common import Progress, UsageError, command_line, load_data, out_dir
 from .loop import add_common
 
@@ -44,12 +42,9 @@ def run(args, argv) -> int:
     plot_residuals(os.path.join(out, "residuals.png"), ex,
                    parameter_label=parameter_label(args.system))
     if model is not None:
-        d2 = augment(data, model.mech)
-        feats = jax.vmap(jax.vmap(model.features, in_axes=(0, None)), in_axes=(0, 0))(
-            d2.ys, d2.drive)
-        U = np.asarray(jax.vmap(jax.vmap(model.correction))(feats))
+        U = learnt_correction(model, data)
         exu = explain(data, args.system, seed=args.seed, bootstrap=args.bootstrap,
-                      target=U.reshape(-1, U.shape[-1]))
+                      target=U)
         doc["correction"] = exu.to_dict()
         doc["correction"]["model"] = os.path.abspath(args.model)
     write_json(os.path.join(out, "explanation.json"), doc)

@@ -24,7 +24,9 @@ def add_common(p) -> None:
 
 def _add_ude(p) -> None:
     p.add_argument("--ude", action="store_true",
-                   help="also fit a NN UDE on the mechanistic and on the refined model")
+                   help="also fit a NN UDE on the mechanistic and on the refined model, "
+                   "and locate the first one's learnt correction as the residual is located "
+                   "(the two routes; metrics.json's routes says whether they agree)")
     p.add_argument("--starts", type=positive_int("--starts"), default=3,
                    help="UDE starts with --ude (default 3)")
 
@@ -60,7 +62,8 @@ def _finish(args, argv, name, ds, result, progress) -> int:
     out = out_dir(args.out)
     if args.ude:
         fit_udes(result, ds, FitOptions(system=args.system, starts=args.starts,
-                                        seed=args.seed), progress=progress)
+                                        seed=args.seed), progress=progress,
+                 seed=args.seed, bootstrap=args.bootstrap)
     doc = write_loop(out, ds, result, provenance(command_line(argv), args.data), name=name,
                      options=_options(args))
     b, a = result.before.metrics.summary, result.after.metrics.summary

@@ -36,6 +36,7 @@ from ..training.identify import augment, identify
 from .describe import VERY_STRONG, describe as describe_shapes, effect_fields
 from .explain import choose_shape, explain
 from .locate import Location, locate
+from .routes import RouteComparison, compare_routes
 
 
 
@@ -66,6 +67,8 @@ class LoopResult:
     explanations: list = field(default_factory=list)   # Explanation per step
     locations: list = field(default_factory=list)      # Location per step (shapes)
     ude: dict = field(default_factory=dict)             # {"before": FitResult, "after": ...}
+    routes: RouteComparison | None = None               # residual vs UDE correction
+    samples: int = 32                                   # samples per orbit of the analysis
     ranges: dict = field(default_factory=dict)
     seconds: float = 0.0
     states: dict | None = None                          # the samples' states (library)
@@ -173,7 +176,7 @@ def refine(ds: OrbitDataset, system: str, add: list, *, reference=None, seed: in
     return LoopResult(system, before, after, added, steps=[
         {"step": 1, "candidate": ", ".join(k for k, _ in added), "kept": True,
          "reason": "given with --add", "metrics": after.brief()}],
-        explanations=[ex], ranges=ranges, seconds=time.perf_counter() - t0)
+        explanations=[ex], ranges=ranges, seconds=time.perf_counter() - t0, samples=samples)
 
 
 def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
@@ -258,7 +261,7 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     # nothing kept: "after" is the mechanistic model itself
     return LoopResult(system, before, current, added, steps=steps,
                       explanations=explanations, locations=locations, ranges=ranges,
-                      seconds=time.perf_counter() - t0, states=S)
+                      seconds=time.perf_counter() - t0, states=S, samples=samples)
 
 
 def _spline_candidate(loc: Location) -> dict | None:
@@ -302,14 +305,35 @@ def _distinct(candidates: list) -> list:
     return out
 
 
-def fit_udes(result: LoopResult, ds: OrbitDataset, opts, *, reference=None, progress=None):
-    """A UDE on the mechanistic model and one on the refined model (same options)."""
+def fit_udes(result: LoopResult, ds: OrbitDataset, opts, *, reference=None, progress=None,
+             seed: int = 0, bootstrap: int = 200):
+    """A UDE on the mechanistic model and one on the refined model (same options); the
+    first UDE's learnt correction is located and named as the residual was (the two routes,
+    :mod:`.routes`)."""
     for which, stage in (("before", result.before), ("after", result.after)):
         if which == "after" and not result.added:
             result.ude["after"] = result.ude.get("before")
             continue
         result.ude[which] = fit(ds, opts, reference=reference, progress=progress,
                                 mechanistic=stage.model)
+    compare_ude_route(result, ds, result.ude["before"], reference=reference, seed=seed,
+                      bootstrap=bootstrap, progress=progress)
+    return result
+
+
+def compare_ude_route(result: LoopResult, ds: OrbitDataset, ude_fit, *, reference=None,
+                      seed: int = 0, bootstrap: int = 200, progress=None):
+    """``result.routes``: the UDE route (``ude_fit``, a fit on the loop's mechanistic model)
+    beside the loop's residual route; nothing when no UDE with a correction was kept."""
+    if ude_fit.ude is None or ude_fit.ude.correction is None:
+        return result
+    say = progress or (lambda **kw: None)
+    say(event="stage", stage="locating the UDE's learnt correction")
+    data = prepare(ds, result.system, reference, result.samples)[0]
+    result.routes = compare_routes(
+        data, result.system, ude_fit.ude, seed=seed, bootstrap=bootstrap,
+        residual_location=result.locations[0] if result.locations else None,
+        residual_explanation=result.explanations[0] if result.explanations else None)
     return result
 
 
@@ -353,5 +377,6 @@ def metrics_document(result: LoopResult) -> dict:
         "explanation": first.to_dict() if first else None,
         "explanations": [e.to_dict() for e in result.explanations[1:]],
         "ranges": result.ranges,
+        "routes": None if result.routes is None else result.routes.to_json(),
         "seconds": result.seconds,
     }

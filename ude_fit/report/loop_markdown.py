@@ -94,6 +94,26 @@ def location_section(where: dict) -> list:
     return L + [""]
 
 
+def routes_section(routes: dict) -> list:
+    """The residual route beside the UDE route (the learnt correction located and named
+    the same way), and whether they agree."""
+    L = ["", "## Two routes: the residual and the UDE's learnt correction", "",
+         routes["summary"], "",
+         "| route | located (equation, state) | shape | catalogue's top term |",
+         "|---|---|---|---|"]
+    for r in (routes["residual"], routes["ude"]):
+        where = "nothing beyond the noise" if r["equation"] is None else \
+            f"{r['equation']}, {r['state']}"
+        named = "—" if r["catalogue_key"] is None else \
+            f"{r['catalogue_name']} (`{r['catalogue_key']}`)"
+        L.append(f"| {r['route']} | {where} | {r['description'] or '—'} | {named} |")
+    L += ["", "The UDE's correction (on the mechanistic model) is evaluated on the measured "
+          "orbits' samples and located by the same shape functions as the residual; "
+          "agreement is on the equation and state of each route's strongest significant "
+          "shape."]
+    return L
+
+
 def render_loop(doc: dict, figures: dict) -> str:
     b, a = doc["before"], doc["after"]
     ub, ua = b.get("ude"), a.get("ude")
@@ -148,6 +168,8 @@ def render_loop(doc: dict, figures: dict) -> str:
                  f"{pct(m.get('branch_rms'))} | {m.get('missed', '—')} |")
     if doc.get("location"):
         L += location_section(doc["location"])
+    if doc.get("routes"):
+        L += routes_section(doc["routes"])
     L += ["", "## Candidates for the mechanistic model's residual", ""]
     if doc.get("explanation"):
         L += candidates_section(doc["explanation"], doc["system"])
