@@ -29,6 +29,7 @@ from ..analysis.diagram import _evaluate
 from ..analysis.metrics_type import ModelMetrics
 from ..data.orbit import OrbitDataset
 from ..fitting import fit, identify_mechanistic, prepare
+from ..models.forms import state_parts
 from ..models.library import LIBRARY, STRUCTURAL, effect, states_of
 from ..models.refined import describe
 from ..models.ude import UDE
@@ -206,6 +207,10 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
             locations.append(loc)
             located = _located_candidates(loc, system) + [_spline_candidate(loc)]
         candidates, why_tried = _distinct([catalogue, *(located or [])]), None
+        if not candidates and locate_shapes:
+            loc2, candidates = _coefficient_candidates(data, system, added, seed, S, set())
+            if candidates:
+                locations[-1] = loc2
         if not candidates:
             # nothing beats the noise: a linear term may still be worth a try on the
             # diagram (kept only if it improves it); a structural effect never is
@@ -217,31 +222,31 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                 break
             why_tried = "not significant by cross-validation; a linear term tried on the diagram"
             candidates = [top]
-        # the catalogue's top candidate and the located shape's form (when they differ)
-        # are both tried on the diagram; the better goes on
-        tried = []
-        for cand in candidates:
-            trial = added + [(cand["key"], cand["shape"])]
-            say(event="stage", stage=f"refitting with {cand['name']}")
-            mech, ident = _identify(data, system, trial, seed=seed, bootstrap=bootstrap)
-            tried.append((cand, trial, ident, _stage("refined", UDE(mech), ds, data, ranges,
-                                                     ref, ref_source, ident)))
-        best = tried[0]
-        for t in tried[1:]:
-            # the spline (many parameters), and a class the criterion could not tell from
-            # the catalogue term named (a tie: the catalogue term explains as much), must
-            # beat it as the loop's own rule asks of any addition; a named candidate just
-            # has to do better
-            gain = min_gain if t[0].get("spline") or t[0].get("tie") else 0.0
-            if _better(t[3].metrics, best[3].metrics, gain):
-                best = t
-        for cand, _, _, st in tried:
-            if cand is not best[0]:
-                steps.append({"step": step, "candidate": cand["key"], "name": cand["name"],
-                              "kind": cand["kind"], "shape": cand["shape"], "kept": False,
-                              "significant": True, "reason": "another candidate of this "
-                              f"step ({best[0]['key']}) does better on the diagram",
-                              "metrics": st.brief()})
+        best, rejected = _try_candidates(candidates, added, current, data, system, ds,
+                                         ranges, ref, ref_source, seed, bootstrap,
+                                         min_gain, say)
+        if locate_shapes and not _better(best[3].metrics, current.metrics, min_gain):
+            # second stage: a damping whose coefficient depends on a displacement (c(h) h')
+            # is no shape of one state. Fitted beside the single states it shares what
+            # they explain, so it is tried only once they have failed on the diagram
+            loc2, second = _coefficient_candidates(data, system, added, seed, S,
+                                                   {c["key"] for c in candidates})
+            if second:
+                locations[-1] = loc2
+                best2, rejected2 = _try_candidates(second, added, current, data, system, ds,
+                                                   ranges, ref, ref_source, seed, bootstrap,
+                                                   min_gain, say)
+                if _better(best2[3].metrics, best[3].metrics, 0.0):
+                    rejected += [best] + rejected2
+                    best = best2
+                else:
+                    rejected += [best2] + rejected2
+        for cand, _, _, st in rejected:
+            steps.append({"step": step, "candidate": cand["key"], "name": cand["name"],
+                          "kind": cand["kind"], "shape": cand["shape"], "kept": False,
+                          "significant": True, "reason": "another candidate of this "
+                          f"step ({best[0]['key']}) does better on the diagram",
+                          "metrics": st.brief()})
         top, trial, ident, stage = best
         keep = _better(stage.metrics, current.metrics, min_gain)
         reason = ("improves the diagram" if keep else
@@ -264,6 +269,38 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                       seconds=time.perf_counter() - t0, states=S, samples=samples)
 
 
+def _coefficient_candidates(data, system, added, seed, S, exclude: set):
+    """(the location with the velocities' displacement-dependent coefficients among the
+    shapes, the top such shape's candidates not in ``exclude``)."""
+    loc = describe_shapes(locate(data, system, added=tuple(added), seed=seed,
+                                 damping_shapes=True), S)
+    cands = [c for c in _located_candidates(loc, system, coefficient_shapes=True)
+             if c["key"] not in exclude]
+    return loc, cands
+
+
+def _try_candidates(candidates, added, current, data, system, ds, ranges, ref, ref_source,
+                    seed, bootstrap, min_gain, say):
+    """Refit and re-trace with each candidate; (the best trial, the others). The first
+    candidate (the catalogue's top) is the incumbent; the spline (many parameters), and a
+    class the criterion could not tell from the catalogue term named (a tie: the catalogue
+    term explains as much), must beat it as the loop's own rule asks of any addition; a
+    named candidate just has to do better."""
+    tried = []
+    for cand in candidates:
+        trial = added + [(cand["key"], cand["shape"])]
+        say(event="stage", stage=f"refitting with {cand['name']}")
+        mech, ident = _identify(data, system, trial, seed=seed, bootstrap=bootstrap)
+        tried.append((cand, trial, ident, _stage("refined", UDE(mech), ds, data, ranges,
+                                                 ref, ref_source, ident)))
+    best = tried[0]
+    for t in tried[1:]:
+        gain = min_gain if t[0].get("spline") or t[0].get("tie") else 0.0
+        if _better(t[3].metrics, best[3].metrics, gain):
+            best = t
+    return best, [t for t in tried if t is not best]
+
+
 def _spline_candidate(loc: Location) -> dict | None:
     """The top located shape as a spline term, when no class or catalogue term describes
     it: the spline beats the best by very strong evidence (BIC)."""
@@ -277,10 +314,15 @@ def _spline_candidate(loc: Location) -> dict | None:
             f"{d.state})", "shape": d.spline.shape, "kind": "located shape", "spline": True}
 
 
-def _located_candidates(loc: Location, system: str) -> list:
+def _located_candidates(loc: Location, system: str, coefficient_shapes: bool = False
+                        ) -> list:
     """The top significant located shape's description as loop candidates: the contender
-    named, and the one of the other origin (catalogue or class) it ties with by BIC."""
+    named, and the one of the other origin (catalogue or class) it ties with by BIC.
+    ``coefficient_shapes``: the top among the shapes that are a velocity's coefficient
+    depending on a displacement (``h_dot(h)``) instead."""
     sig = loc.significant()
+    if coefficient_shapes:
+        sig = [s for s in sig if state_parts(s.state)[1] is not None]
     if not sig or sig[0].description is None:
         return []
     d = sig[0].description
