@@ -188,7 +188,9 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     With ``locate_shapes`` each step also locates the residual as shapes of single states
     (:mod:`.locate`), describes the strongest (:mod:`.describe`) and tries its form beside the
     catalogue's top candidate (experimental: off by default until the campaign figures of
-    docs/fitting.md hold for every catalogue case)."""
+    docs/fitting.md hold for every catalogue case). When none of a step's candidates improves
+    the diagram (or none is significant), a second stage locates each velocity's coefficient
+    as a shape of a displacement (position-dependent damping) and tries the strongest."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
     data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
@@ -222,7 +224,7 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                 break
             why_tried = "not significant by cross-validation; a linear term tried on the diagram"
             candidates = [top]
-        best, rejected = _try_candidates(candidates, added, current, data, system, ds,
+        best, rejected = _try_candidates(candidates, added, data, system, ds,
                                          ranges, ref, ref_source, seed, bootstrap,
                                          min_gain, say)
         if locate_shapes and not _better(best[3].metrics, current.metrics, min_gain):
@@ -233,7 +235,7 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                                                    {c["key"] for c in candidates})
             if second:
                 locations[-1] = loc2
-                best2, rejected2 = _try_candidates(second, added, current, data, system, ds,
+                best2, rejected2 = _try_candidates(second, added, data, system, ds,
                                                    ranges, ref, ref_source, seed, bootstrap,
                                                    min_gain, say)
                 if _better(best2[3].metrics, best[3].metrics, 0.0):
@@ -279,7 +281,7 @@ def _coefficient_candidates(data, system, added, seed, S, exclude: set):
     return loc, cands
 
 
-def _try_candidates(candidates, added, current, data, system, ds, ranges, ref, ref_source,
+def _try_candidates(candidates, added, data, system, ds, ranges, ref, ref_source,
                     seed, bootstrap, min_gain, say):
     """Refit and re-trace with each candidate; (the best trial, the others). The first
     candidate (the catalogue's top) is the incumbent; the spline (many parameters), and a
