@@ -104,12 +104,20 @@ starts = 1
 """
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class Driver:
     """A fleet or sweep command as a process, its stderr collected as it comes."""
 
     def __init__(self, args: list[str], env: dict):
+        # SIGINT at its default in the child: a test run started in the background by a
+        # non-interactive shell inherits it ignored, and the Ctrl-C test would then stop
+        # nothing (two CI runs launched with `nohup ... &` failed so)
         self.proc = subprocess.Popen([sys.executable, "-m", *args], cwd=REPO, env=env,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     preexec_fn=_default_sigint)
         self.err = b""
         self._t = threading.Thread(target=self._pump, daemon=True)
         self._t.start()
