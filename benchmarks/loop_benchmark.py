@@ -7,7 +7,7 @@ candidate is the planted one, the coefficient's relative error, the branch error
 after (missed points counted at their measured amplitude), and the loop's wall time. A
 clean rig gives the false-discovery count (catalogue effects reported significant).
 
-Non-catalogue cases ("located"): the rig plugins of benchmarks/locate_cases.py (forms the
+Non-catalogue cases ("located"): the rig plugins of tests/located_cases.py (forms the
 catalogue does not list, both rigs), the loop with the located shapes: the equation and
 state located, the shape class named, the branch error before and after, the time.
 
@@ -22,7 +22,9 @@ With ``--ude STARTS`` each non-catalogue run also fits a UDE on the mechanistic 
 locates its learnt correction the same way (the UDE route): where it puts the effect and
 whether that agrees with the residual route.
 
-    python3 benchmarks/loop_benchmark.py [--seeds N] [--only catalogue|located] [--ude S]
+The two cases put aside at the start of that work ("aside") are run and reported apart.
+
+    python3 benchmarks/loop_benchmark.py [--seeds N] [--only catalogue|located|aside] [--ude S]
 """
 
 from __future__ import annotations
@@ -182,22 +184,22 @@ def _ude_route(res, ds, system: str, seed: int, starts: int) -> dict:
             "ude_description": None if r is None else r.ude.description}
 
 
-def run_located(seeds: int, ude_starts: int = 0) -> dict:
-    """The non-catalogue cases of benchmarks/locate_cases.py through the loop with the
-    located shapes, and the STLSQ peer on the same residual; with ``ude_starts`` also the
-    UDE route (a UDE of that many starts on the mechanistic model, its correction located)
-    and whether it agrees with the residual route."""
-    from benchmarks.locate_cases import CASES as LOCATED, planted_states, write_case_campaign
+def run_located(seeds: int, ude_starts: int = 0, aside: bool = False) -> dict:
+    """The non-catalogue cases of tests/located_cases.py (with ``aside``: the two cases put
+    aside) through the loop with its defaults, and the STLSQ peer on the same residual; with
+    ``ude_starts`` also the UDE route (a UDE of that many starts on the mechanistic model,
+    its correction located) and whether it agrees with the residual route."""
+    from tests.located_cases import ASIDE, CASES, planted_states, write_case_campaign
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for case, (system, equation, state) in LOCATED.items():
+        for case, (system, equation, state) in (ASIDE if aside else CASES).items():
             recs = []
             for seed in range(seeds):
                 path = os.path.join(tmp, f"{case.replace('/', '_')}_{seed}.h5")
                 write_case_campaign(path, case, seed=100 * seed)
                 ds = load([path], system)
                 t0 = time.perf_counter()
-                res = close_loop(ds, system, seed=seed, locate_shapes=True)
+                res = close_loop(ds, system, seed=seed)
                 secs = time.perf_counter() - t0
                 m = metrics_document(res)
                 top = next((s for q in (m["location"] or {}).get("equations", [])
@@ -277,6 +279,11 @@ def run(seeds: int) -> dict:
             rows[case] = {
                 "planted": key, "seeds": seeds,
                 "top_is_planted": None if key is None else len(ok),
+                # the loop's first kept effect (a located class may compete with it)
+                "kept_is_planted": None if key is None else sum(
+                    r["kept"][:1] == [key] for r in recs),
+                "coefficient_within_20_percent": None if key is None else sum(
+                    (r.get("coefficient_rel_error") or np.inf) <= 0.2 for r in recs),
                 "stlsq_top_structural_is_planted": None if key is None else sum(
                     r["stlsq"]["top_structural"] == key for r in recs),
                 "false_discoveries": sum(len(r["false_discoveries"]) for r in recs),
@@ -299,18 +306,21 @@ def run(seeds: int) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--seeds", type=int, default=3, help="campaign seeds per case (default 3)")
-    p.add_argument("--only", choices=("catalogue", "located"),
-                   help="run only the catalogue or only the non-catalogue cases")
+    p.add_argument("--only", choices=("catalogue", "located", "aside"),
+                   help="run only the catalogue cases, the non-catalogue cases or the two "
+                   "non-catalogue cases put aside")
     p.add_argument("--ude", type=int, default=0, metavar="STARTS",
                    help="non-catalogue cases: also the UDE route with a UDE of STARTS "
                    "starts, and whether it agrees with the residual route (default 0: not)")
     args = p.parse_args()
     from ude_fit.model_file import _version
     out = {"benchmark": "loop", "version": _version(), "sigma": 0.02}
-    if args.only != "located":
+    if args.only in (None, "catalogue"):
         out["cases"] = run(args.seeds)
-    if args.only != "catalogue":
+    if args.only in (None, "located"):
         out["located"] = run_located(args.seeds, args.ude)
+    if args.only in (None, "aside"):
+        out["aside"] = run_located(args.seeds, args.ude, aside=True)
     print(json.dumps(out, indent=1))
 
 

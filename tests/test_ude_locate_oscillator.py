@@ -1,12 +1,12 @@
 """The locate route on the shaker oscillator, end to end on one small campaign: a rig
 started with a damper that engages only on fast +x motion (tests/plugins/oscillator/
 fast_damper.py, not a catalogue form), its own true orbits held by its board at
-sigma = 0.02, then `ude-fit loop --locate-shapes`: the effect must be located in the x
+sigma = 0.02, then `ude-fit loop`: the effect must be located in the x
 equation on x' (not on x, where the catalogue's nearest term lives) and, added, bring the
 branch error to at most a third of the mechanistic model's. Also the truth with a plugin:
 the board held on a truth orbit stays on it (the plugin acts the same in both).
-The full cases (three oscillator plugins on the wide-band campaign) are measured by
-benchmarks/locate_cases.py."""
+Two more cases of tests/located_cases.py (a one-sided contact, a saturating velocity force)
+run on the wide-band campaign's frequencies; all are measured by benchmarks/locate_cases.py."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.located_cases import assert_located, loop_case
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import cli
 
@@ -50,8 +51,8 @@ def test_a_damper_on_fast_motion_is_located_on_velocity_and_added(tmp_path):
                                   sigma=0.02, plugin=PLUGIN, held_within=0.2)
     assert len(truths) >= 12           # the board holds the plugin rig's true orbits
     out = tmp_path / "loop"
-    rc = cli.main(["loop", str(path), "--system", "oscillator", "--locate-shapes",
-                   "--max-effects", "1", "--bootstrap", "20", "--out", str(out), "--quiet"])
+    rc = cli.main(["loop", str(path), "--system", "oscillator", "--max-effects", "1",
+                   "--bootstrap", "20", "--out", str(out), "--quiet"])
     assert rc == 0
     m = json.loads((out / "metrics.json").read_text())
     top = m["location"]["equations"][0]["shapes"][0]
@@ -62,3 +63,13 @@ def test_a_damper_on_fast_motion_is_located_on_velocity_and_added(tmp_path):
     print(f"oscillator fast damper: {e['description']}; {100 * before:.2f} % -> "
           f"{100 * after:.2f} %")
     assert after <= before / 3
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["oscillator/contact", "oscillator/velocity_saturation"])
+def test_an_effect_outside_the_catalogue_is_located_named_and_added(tmp_path, name):
+    """A one-sided contact (x) and a saturating velocity force (x'), each on the wide-band
+    campaign's frequencies at sigma = 0.02, through `ude-fit loop` with its defaults."""
+    rc, m, out = loop_case(tmp_path, name, "--bootstrap", "20")
+    assert rc == 0
+    assert_located(name, m)
