@@ -21,6 +21,7 @@ import pytest
 from rig_sim.physics.flutter import FlutterParams
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import cli
+from ude_fit.models.library import STRUCTURAL
 
 import jax  # noqa: E402  (after the imports above, before any array)
 
@@ -161,6 +162,9 @@ def test_oscillator_coil_found_as_a_velocity_lag(tmp_path):
     assert rc == 0
     e = m["effect"]
     assert e["key"] == "velocity_lag"
+    # the located shapes are tried too (the loop's default); none is kept on a clean rig
+    kept = [s for s in m["steps"] if s["kept"]]
+    assert all(s["kind"] not in (STRUCTURAL, "located shape") for s in kept), kept
     p = OscillatorParams()
     print(f"oscillator: {e['name']}, tau {e['shape']:.5f} s (L/R {p.L / p.R:.5f}), coefficient "
           f"{e['coefficients'][0]:.3f} (-theta^2/(m R) {-p.theta ** 2 / (p.mass * p.R):.3f}); "

@@ -27,6 +27,7 @@ class PipelineOptions:
     max_effects: int = 3        # most effects the loop adds
     min_gain: float = 0.1       # keep an effect only if the branch error falls by this
     bootstrap: int = 200        # bootstrap resamples for the loop's uncertainties
+    locate_shapes: bool = True  # the loop also tries located shapes (not the catalogue only)
 
     def __post_init__(self):
         if not isinstance(self.fit, FitOptions):
@@ -36,6 +37,8 @@ class PipelineOptions:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be an integer at least 1, "
                                  f"not {v!r}")
+        if not isinstance(self.locate_shapes, bool):
+            raise ValueError(f"locate_shapes must be true or false, not {self.locate_shapes!r}")
         if not (isinstance(self.min_gain, (int, float)) and math.isfinite(self.min_gain)
                 and 0 <= self.min_gain < 1):
             raise ValueError(f"--min-gain must be at least 0 and below 1, not "
@@ -44,10 +47,12 @@ class PipelineOptions:
     def loop_json(self) -> dict:
         """The loop's options as its metrics.json records them."""
         return {"system": self.fit.system, "seed": self.fit.seed, "bootstrap": self.bootstrap,
-                "max_effects": self.max_effects, "min_gain": self.min_gain}
+                "max_effects": self.max_effects, "min_gain": self.min_gain,
+                "locate_shapes": self.locate_shapes}
 
     def to_json(self) -> dict:
         return {"fit": self.fit.to_json(), "max_effects": self.max_effects,
+                "locate_shapes": self.locate_shapes,
                 "min_gain": self.min_gain, "bootstrap": self.bootstrap}
 
 
@@ -72,5 +77,5 @@ def run_pipeline(ds: OrbitDataset, options: PipelineOptions, *,
     say(event="stage", stage="pipeline 2/2: close the loop (explain, add, refit)")
     loop = close_loop(ds, opts.system, max_effects=options.max_effects,
                       min_gain=options.min_gain, seed=opts.seed, bootstrap=options.bootstrap,
-                      progress=progress)
+                      locate_shapes=options.locate_shapes, progress=progress)
     return PipelineResult(options, fitted, loop)

@@ -3,6 +3,8 @@ add the top-ranked effect -> refit, while the diagram improves)."""
 
 from __future__ import annotations
 
+import argparse
+
 from ..discovery.loop import close_loop, fit_udes, parse_add, refine
 from ..report.files import provenance
 from ..report.loop_files import write_loop
@@ -48,9 +50,11 @@ def add_parsers(sub) -> None:
     lp.add_argument("--min-gain", type=nonnegative_float("--min-gain"), default=0.1,
                     help="keep an effect only if the branch RMS error falls by this fraction "
                     "(or fewer points are missed; default 0.1)")
-    lp.add_argument("--locate-shapes", action="store_true",
-                    help="experimental: also locate the residual as shapes of single states, "
-                    "name their class and try the form beside the catalogue's candidate")
+    lp.add_argument("--locate-shapes", action=argparse.BooleanOptionalAction, default=True,
+                    help="also locate the residual as shapes of single states (and a "
+                    "velocity's coefficient as a shape of a displacement), name their class "
+                    "and try the form beside the catalogue's candidate (default: on; "
+                    "--no-locate-shapes tries the catalogue only)")
     _add_ude(lp)
 
 

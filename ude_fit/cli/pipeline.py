@@ -6,6 +6,7 @@ compose file's ``fit`` service run."""
 
 from __future__ import annotations
 
+import argparse
 import sys
 
 from ..pipeline import PipelineOptions, run_pipeline
@@ -23,6 +24,9 @@ def add_parser(sub) -> None:
     add_fit_arguments(p)
     p.add_argument("--max-effects", type=positive_int("--max-effects"), default=3,
                    help="most effects the loop adds (default 3)")
+    p.add_argument("--locate-shapes", action=argparse.BooleanOptionalAction, default=True,
+                   help="the loop also locates the residual as shapes and tries their forms "
+                   "beside the catalogue's (default: on; --no-locate-shapes: the catalogue only)")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="output folder (created); fit/ and loop/ go inside")
     p.add_argument("--quiet", action="store_true", help="no progress on the terminal")
@@ -30,7 +34,8 @@ def add_parser(sub) -> None:
 
 def pipeline_options(args) -> PipelineOptions:
     """The options the flags ask for; ValueError (naming the option) if they make none."""
-    return PipelineOptions(fit=fit_options(args), max_effects=args.max_effects)
+    return PipelineOptions(fit=fit_options(args), max_effects=args.max_effects,
+                           locate_shapes=args.locate_shapes)
 
 
 def run(args, argv) -> int:

@@ -182,15 +182,16 @@ def refine(ds: OrbitDataset, system: str, add: list, *, reference=None, seed: in
 
 def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                min_gain: float = 0.1, reference=None, seed: int = 0, bootstrap: int = 200,
-               samples: int = 32, locate_shapes: bool = False, progress=None) -> LoopResult:
+               samples: int = 32, locate_shapes: bool = True, progress=None) -> LoopResult:
     """explain -> add the top-ranked effect -> refit, while it improves the diagram.
 
-    With ``locate_shapes`` each step also locates the residual as shapes of single states
-    (:mod:`.locate`), describes the strongest (:mod:`.describe`) and tries its form beside the
-    catalogue's top candidate (experimental: off by default until the campaign figures of
-    docs/fitting.md hold for every catalogue case). When none of a step's candidates improves
-    the diagram (or none is significant), a second stage locates each velocity's coefficient
-    as a shape of a displacement (position-dependent damping) and tries the strongest."""
+    With ``locate_shapes`` (the default) each step also locates the residual as shapes of
+    single states (:mod:`.locate`), describes the strongest (:mod:`.describe`) and tries its
+    form beside the catalogue's top candidate; the diagram decides, a generic class having
+    to beat a catalogue term by ``min_gain`` (:func:`_margin`). When none of a step's candidates improves the diagram (or
+    none is significant), a second stage locates each velocity's coefficient as a shape of a
+    displacement (position-dependent damping) and tries the strongest. Without it the loop
+    tries the catalogue's candidates only."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
     data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
@@ -224,7 +225,7 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                 break
             why_tried = "not significant by cross-validation; a linear term tried on the diagram"
             candidates = [top]
-        best, rejected = _try_candidates(candidates, added, data, system, ds,
+        best, rejected = _try_candidates(candidates, added, current, data, system, ds,
                                          ranges, ref, ref_source, seed, bootstrap,
                                          min_gain, say)
         if locate_shapes and not _better(best[3].metrics, current.metrics, min_gain):
@@ -235,20 +236,27 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                                                    {c["key"] for c in candidates})
             if second:
                 locations[-1] = loc2
-                best2, rejected2 = _try_candidates(second, added, data, system, ds,
+                best2, rejected2 = _try_candidates(second, added, current, data, system, ds,
                                                    ranges, ref, ref_source, seed, bootstrap,
                                                    min_gain, say)
-                if _better(best2[3].metrics, best[3].metrics, 0.0):
+                # `best` does not improve the diagram enough to be kept (that is why the
+                # second stage runs): one that does replaces it, else the better one is shown
+                if (_better(best2[3].metrics, current.metrics, min_gain)
+                        or _better(best2[3].metrics, best[3].metrics,
+                                   _margin(best2[0], best[0], min_gain))):
                     rejected += [best] + rejected2
                     best = best2
                 else:
                     rejected += [best2] + rejected2
         for cand, _, _, st in rejected:
+            why = ("does better on the diagram"
+                   if not _better(st.metrics, best[3].metrics, 0.0) else
+                   f"does as well on the diagram (within {min_gain:.0%}) with a name and no "
+                   "more parameters")
             steps.append({"step": step, "candidate": cand["key"], "name": cand["name"],
                           "kind": cand["kind"], "shape": cand["shape"], "kept": False,
                           "significant": True, "reason": "another candidate of this "
-                          f"step ({best[0]['key']}) does better on the diagram",
-                          "metrics": st.brief()})
+                          f"step ({best[0]['key']}) {why}", "metrics": st.brief()})
         top, trial, ident, stage = best
         keep = _better(stage.metrics, current.metrics, min_gain)
         reason = ("improves the diagram" if keep else
@@ -281,13 +289,13 @@ def _coefficient_candidates(data, system, added, seed, S, exclude: set):
     return loc, cands
 
 
-def _try_candidates(candidates, added, data, system, ds, ranges, ref, ref_source,
+def _try_candidates(candidates, added, current, data, system, ds, ranges, ref, ref_source,
                     seed, bootstrap, min_gain, say):
-    """Refit and re-trace with each candidate; (the best trial, the others). The first
-    candidate (the catalogue's top) is the incumbent; the spline (many parameters), and a
-    class the criterion could not tell from the catalogue term named (a tie: the catalogue
-    term explains as much), must beat it as the loop's own rule asks of any addition; a
-    named candidate just has to do better."""
+    """Refit and re-trace with each candidate; (the best trial, the others). Only the
+    trials that improve on ``current`` as the loop keeps an effect compete (all of them
+    when none does); the first of those (the catalogue's top, when it is significant and
+    good enough) is the incumbent, and :func:`_margin` says what a challenger must gain
+    over it."""
     tried = []
     for cand in candidates:
         trial = added + [(cand["key"], cand["shape"])]
@@ -295,12 +303,26 @@ def _try_candidates(candidates, added, data, system, ds, ranges, ref, ref_source
         mech, ident = _identify(data, system, trial, seed=seed, bootstrap=bootstrap)
         tried.append((cand, trial, ident, _stage("refined", UDE(mech), ds, data, ranges,
                                                  ref, ref_source, ident)))
-    best = tried[0]
-    for t in tried[1:]:
-        gain = min_gain if t[0].get("spline") or t[0].get("tie") else 0.0
-        if _better(t[3].metrics, best[3].metrics, gain):
+    pool = [t for t in tried if _better(t[3].metrics, current.metrics, min_gain)] or tried
+    best = pool[0]
+    for t in pool[1:]:
+        if _better(t[3].metrics, best[3].metrics, _margin(t[0], best[0], min_gain)):
             best = t
     return best, [t for t in tried if t is not best]
+
+
+def _margin(challenger: dict, incumbent: dict, min_gain: float) -> float:
+    """The fraction of the incumbent's branch error a challenger must take off to replace
+    it. A catalogue term explains with a name and no more parameters than a generic class
+    (which adds at least its threshold or scale), so a generic class or the spline (many
+    parameters) replaces a catalogue term only as the loop's own rule admits any addition
+    (``min_gain``); so does a class the criterion could not tell from the catalogue term
+    (a tie). Between candidates of the same origin the better on the diagram wins."""
+    generic = challenger["kind"] == "located shape"
+    catalogue_incumbent = incumbent["kind"] != "located shape"
+    if challenger.get("spline") or challenger.get("tie") or (generic and catalogue_incumbent):
+        return min_gain
+    return 0.0
 
 
 def _spline_candidate(loc: Location) -> dict | None:
