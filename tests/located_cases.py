@@ -47,9 +47,14 @@ def planted_states(located: str) -> list:
 def write_case_campaign(path, name: str, seed: int = 0) -> None:
     """The case's sigma = 0.02 campaign (the rig started with the plugin)."""
     system = {**CASES, **ASIDE}[name][0]
+    write_clean_campaign(path, system, seed, plugin=f"{PLUGINS / (name + '.py')}:force")
+
+
+def write_clean_campaign(path, system: str, seed: int = 0, plugin: str | None = None) -> None:
+    """The same campaign on the rig without a plugin (or with ``plugin``)."""
     where = {"airspeeds": AIRSPEEDS} if system == "flutter" else WIDE
     write_truth_campaign(path, system, sigma=0.02, seed=seed, held_within=0.2,
-                         plugin=f"{PLUGINS / (name + '.py')}:force", **where)
+                         plugin=plugin, **where)
 
 
 def loop_case(tmp: Path, name: str, *extra: str) -> tuple[int, dict, Path]:
