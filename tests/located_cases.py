@@ -16,6 +16,9 @@ from tests.ude_fixtures import write_truth_campaign
 PLUGINS = Path(__file__).resolve().parent / "plugins"
 AIRSPEEDS = (19.0, 20.0, 21.0, 22.0, 23.0, 24.0, 25.5)
 WIDE = {"freqs": (20.0, 22.0, 24.0, 26.0), "per_freq": 5}     # campaigns/oscillator_wide
+# the suite's smaller oscillator campaign (three frequencies, four levels each): the
+# benchmarks run the wide one
+SMALL = {"freqs": (20.0, 23.0, 26.0), "per_freq": 4}
 CASES = {
     # plugin -> (system, equation, the located state: a state, or a velocity's coefficient
     # depending on a displacement, "h_dot(h)")
@@ -44,25 +47,29 @@ def planted_states(located: str) -> list:
     return [located]
 
 
-def write_case_campaign(path, name: str, seed: int = 0) -> None:
-    """The case's sigma = 0.02 campaign (the rig started with the plugin)."""
+def write_case_campaign(path, name: str, seed: int = 0, small: bool = False) -> None:
+    """The case's sigma = 0.02 campaign (the rig started with the plugin); ``small``: the
+    oscillator on the suite's three frequencies instead of the wide band."""
     system = {**CASES, **ASIDE}[name][0]
-    write_clean_campaign(path, system, seed, plugin=f"{PLUGINS / (name + '.py')}:force")
+    write_clean_campaign(path, system, seed, plugin=f"{PLUGINS / (name + '.py')}:force",
+                         small=small)
 
 
-def write_clean_campaign(path, system: str, seed: int = 0, plugin: str | None = None) -> None:
+def write_clean_campaign(path, system: str, seed: int = 0, plugin: str | None = None,
+                         small: bool = False) -> None:
     """The same campaign on the rig without a plugin (or with ``plugin``)."""
-    where = {"airspeeds": AIRSPEEDS} if system == "flutter" else WIDE
+    where = {"airspeeds": AIRSPEEDS} if system == "flutter" else SMALL if small else WIDE
     write_truth_campaign(path, system, sigma=0.02, seed=seed, held_within=0.2,
                          plugin=plugin, **where)
 
 
-def loop_case(tmp: Path, name: str, *extra: str) -> tuple[int, dict, Path]:
-    """The case's campaign, then `ude-fit loop` with its defaults (plus ``extra``): the exit
-    code, metrics.json and the output folder."""
+def loop_case(tmp: Path, name: str, *extra: str, small: bool = False
+              ) -> tuple[int, dict, Path]:
+    """The case's campaign (``small``: see :func:`write_case_campaign`), then `ude-fit loop`
+    with its defaults (plus ``extra``): the exit code, metrics.json and the output folder."""
     from ude_fit import cli
     path = tmp / "campaign.h5"
-    write_case_campaign(path, name)
+    write_case_campaign(path, name, small=small)
     out = tmp / "loop"
     rc = cli.main(["loop", str(path), "--system", {**CASES, **ASIDE}[name][0],
                    "--out", str(out), "--quiet", *extra])

@@ -1,6 +1,6 @@
 """The rest-free correction (ude_fit.models.corrections.RestFreeCorrection): whatever its
 network, it leaves the equilibrium at rest and its linearisation to the mechanistic model
-and its explicit damping terms."""
+and its explicit linear terms (affine in the airspeed)."""
 
 import jax
 import jax.numpy as jnp
@@ -24,22 +24,23 @@ def _network(key=0, size=50.0):
     return MLPCorrection(5, 2, sc, key=jax.random.PRNGKey(key), init_scale=30.0)
 
 
-def test_value_and_slope_at_rest_are_the_damping_terms_alone():
-    damping = jnp.array([[0.3, -0.2], [0.1, 0.05]])
-    c = RestFreeCorrection(_network(), 2, damping)
+def test_value_and_slope_at_rest_are_the_linear_terms_alone():
+    linear = jnp.array(np.random.default_rng(0).normal(size=(2, 2, 4)))
+    c = RestFreeCorrection(_network(), 2, linear)
+    s = c.scaling
     for V in (15.0, 22.0, 28.0):
         rest = jnp.array([0.0, 0.0, 0.0, 0.0, V])
         assert np.allclose(c(rest), 0.0, atol=1e-12)
         J = jax.jacfwd(lambda y: c(jnp.concatenate([y, jnp.array([V])])))(jnp.zeros(4))
-        s = c.scaling
         p = (V - s.z_mean[-1]) / s.z_scale[-1]
-        want = np.zeros((2, 4))
-        for i in range(2):
-            want[i, 2 + i] = -s.out_scale[i] * (damping[0, i] + damping[1, i] * p) / s.z_scale[2 + i]
+        # by hand: out_scale_i (L0 + p L1)_ij / y_scale_j, force per state unit
+        want = np.array([[-s.out_scale[i] * (linear[0, i, j] + p * linear[1, i, j])
+                          / s.z_scale[j] for j in range(4)] for i in range(2)])
         assert np.allclose(J, want, atol=1e-9)
+        assert np.allclose(c.linear_matrix(V), want, atol=1e-12)
     # away from rest the network's nonlinear part is there
     y = jnp.array([0.02, 0.03, 0.3, 0.5, 22.0])
-    assert np.abs(np.asarray(c(y))).max() > 1e-3
+    assert np.abs(np.asarray(c(y) - c.linear_matrix(22.0) @ y[:4])).max() > 1e-3
 
 
 def test_the_hopf_point_is_the_mechanistic_models_whatever_the_network():
@@ -51,13 +52,13 @@ def test_the_hopf_point_is_the_mechanistic_models_whatever_the_network():
     # the same network added as it is moves the Hopf point (so the test can fail)
     assert plain is None or abs(plain["param"] - ref["param"]) > 0.05
     # added heave and pitch damping moves it up
-    damped = RestFreeCorrection(_network(), 2, jnp.array([[0.02, 0.0], [0.0, 0.0]]))
+    damped = RestFreeCorrection(_network(), 2, jnp.zeros((2, 2, 4)).at[0, 0, 2].set(0.02))
     moved = hopf_point(UDE(mech, damped), (15.0, 40.0))
     assert moved is not None and moved["param"] > ref["param"] + 0.05
 
 
 def test_model_file_round_trip(tmp_path):
-    model = UDE(FlutterQS.nominal(), RestFreeCorrection(_network(), 2, jnp.ones((2, 2))))
+    model = UDE(FlutterQS.nominal(), RestFreeCorrection(_network(), 2, jnp.ones((2, 2, 4))))
     save_model(tmp_path / "m.eqx", model)
     back, _ = load_model(tmp_path / "m.eqx")
     y = jnp.array([0.02, 0.03, 0.3, 0.5, 22.0])

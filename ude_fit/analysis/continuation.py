@@ -271,7 +271,15 @@ def hopf_point(model: UDE, v_range, n: int = 121) -> dict | None:
         _, lam, _ = _equilibrium_scan(model, jnp.asarray([V]), jnp.zeros(model.n_state))
         return float(jnp.max(jnp.real(lam)))
 
-    VH = brentq(g, eq.param[k], eq.param[k + 1], xtol=1e-12, rtol=1e-13)
+    a, b = eq.param[k], eq.param[k + 1]
+    ga, gb = g(a), g(b)
+    if ga < 0 <= gb:
+        VH = brentq(g, a, b, xtol=1e-12, rtol=1e-13)
+    else:
+        # one airspeed alone does not give the scan's sign at an end (a growth rate within
+        # rounding of zero there): the scan's own crossing, interpolated
+        m0, m1 = eq.max_real[k], eq.max_real[k + 1]
+        VH = float(a + (b - a) * (-m0) / (m1 - m0)) if m1 != m0 else float(b)
     y, lam, _ = _equilibrium_scan(model, jnp.asarray([VH]), jnp.zeros(model.n_state))
     d = Drive.of(VH)
     Jm = np.asarray(jax.jacfwd(lambda yy: model.vector_field(0.0, yy, d))(y[0]))

@@ -110,9 +110,9 @@ def add_fit_arguments(p) -> None:
                    metavar="D", help="--param-dependence polynomial: the degree (default 2)")
     p.add_argument("--rest-free", action="store_true",
                    help="aerofoil: the network's value and slope at rest are subtracted, so "
-                   "it cannot move the equilibrium or its linearisation; a damping term per "
-                   "coordinate, affine in the airspeed, carries the linear change (where "
-                   "the Hopf point lies)")
+                   "it cannot move the equilibrium or its linearisation; explicit linear "
+                   "terms on the displacements and velocities, affine in the airspeed, carry "
+                   "the linear change (where the Hopf point lies)")
     p.add_argument("--mechanistic-params", metavar="FILE.toml",
                    help="the mechanistic model's values you know (TOML, name = number): "
                    "geometry replaces the design values, damping/stiffness given are not "

@@ -96,29 +96,32 @@ def feature_scaling(Z: np.ndarray, F: np.ndarray) -> Scaling:
 
 
 class RestFreeCorrection(eqx.Module):
-    """A correction that cannot move the equilibrium at rest or change its linearisation
-    beyond a few explicit damping terms:
+    """A correction that cannot move the equilibrium at rest, and changes its linearisation
+    only through a few explicit linear terms:
 
-        U(y; p) = N(y; p) - N(0; p) - J_y N(0; p) y - out_scale * (d0 + d1 s) * qd / qd_scale,
+        U(y; p) = N(y; p) - N(0; p) - J_y N(0; p) y - out_scale * (L0 + L1 s) (y / y_scale),
 
     with N the inner network (MLPCorrection or PolynomialParamCorrection), s the standardised
-    parameter and (d0, d1) one pair per degree of freedom: damping added to each coordinate,
-    affine in the parameter. The network carries only the nonlinear part; where the
-    equilibrium loses stability (the Hopf point) is decided by the mechanistic model and the
-    two explicit terms per coordinate, which the orbits near the Hopf point identify, instead
-    of by the network's extrapolation to rest, where no orbit was measured.
+    parameter and (L0, L1) two (n_dof, 2 n_dof) matrices: a linear force on the
+    displacements and velocities, affine in the parameter (damping, stiffness and their
+    coupling, each changing linearly with the airspeed). The network carries only the
+    nonlinear part; where the equilibrium loses stability (the Hopf point) is decided by the
+    mechanistic model and the explicit linear terms, which the orbits near the Hopf point
+    identify and which extrapolate to rest as a straight line in the airspeed, instead of
+    by the network's extrapolation to rest, where no orbit was measured.
 
     Rest is y = 0: the mechanistic aerofoil's equilibrium (no force at rest), which the
     correction therefore keeps.
     """
     inner: eqx.Module
-    damping: jax.Array            # (2, n_dof): d0, d1
+    linear: jax.Array             # (2, n_dof, 2 n_dof): L0, L1
     n_dof: int = eqx.field(static=True)
 
-    def __init__(self, inner: eqx.Module, n_dof: int, damping=None):
+    def __init__(self, inner: eqx.Module, n_dof: int, linear=None):
         self.inner = inner
         self.n_dof = n_dof
-        self.damping = jnp.zeros((2, n_dof)) if damping is None else jnp.asarray(damping)
+        self.linear = (jnp.zeros((2, n_dof, 2 * n_dof)) if linear is None
+                       else jnp.asarray(linear))
 
     @property
     def scaling(self) -> Scaling:
@@ -128,13 +131,17 @@ class RestFreeCorrection(eqx.Module):
     def mlp(self) -> eqx.nn.MLP:
         return self.inner.mlp
 
-    def __call__(self, z):
+    def linear_matrix(self, p):
+        """The explicit linear terms' matrix at the (unscaled) parameter p, in force per
+        state unit: the correction's Jacobian in y at rest."""
         s = self.scaling
+        ps = (p - s.z_mean[-1]) / s.z_scale[-1]
+        n = 2 * self.n_dof
+        return -(s.out_scale[:, None] * (self.linear[0] + self.linear[1] * ps)
+                 / s.z_scale[None, :n])
+
+    def __call__(self, z):
         rest = z.at[:-1].set(0.0)
         # one forward-mode pass: the network at rest and its derivative along y
         f0, df = jax.jvp(self.inner, (rest,), (z.at[-1].set(0.0),))
-        n = self.n_dof
-        p = (z[-1] - s.z_mean[-1]) / s.z_scale[-1]
-        qd = z[n:2 * n] / s.z_scale[n:2 * n]
-        linear = s.out_scale * (self.damping[0] + self.damping[1] * p) * qd
-        return self.inner(z) - f0 - df - linear
+        return self.inner(z) - f0 - df + self.linear_matrix(z[-1]) @ z[:-1]
