@@ -148,7 +148,7 @@ def test_empty_folder_is_one_line_error(tmp_path):
     (["--smoothness-penalty", "inf"], "--smoothness-penalty"),
     (["--param-scale", "0"], "--param-scale"),
     (["--param-dependence", "cubic"], "--param-dependence"),
-    (["--param-degree", "0"], "--param-degree"),
+    (["--param-degree", "-1"], "--param-degree"),
     (["--approximator", "gp", "--param-dependence", "polynomial"], "--param-dependence"),
     (["--energy-rising", "-1"], "--energy-rising"),
     (["--approximator", "gp", "--energy-rising", "1"], "--energy-rising"),
@@ -283,7 +283,7 @@ def test_polynomial_param_correction_is_polynomial_in_the_parameter_and_reloads(
                  jnp.array([2.0, 0.5]))
     ys = jax.random.normal(k3, (6, 4))
     V = jnp.linspace(5.0, 35.0, 13)
-    for degree in (1, 2):
+    for degree in (0, 1, 2):      # 0: the states alone, the same at every V
         corr = PolynomialParamCorrection(5, 2, sc, degree=degree, width=6, key=k1,
                                          init_scale=1.0)
         U = np.asarray(jax.vmap(lambda y: jax.vmap(

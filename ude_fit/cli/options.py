@@ -14,14 +14,14 @@ import argparse
 SYSTEMS = ("flutter", "oscillator")
 
 
-def positive_int(name):
+def positive_int(name, least: int = 1):
     def conv(s):
         try:
             v = int(s)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{name} must be an integer, not {s!r}") from None
-        if v < 1:
-            raise argparse.ArgumentTypeError(f"{name} must be at least 1, not {v}")
+        if v < least:
+            raise argparse.ArgumentTypeError(f"{name} must be at least {least}, not {v}")
         return v
     return conv
 
@@ -106,8 +106,9 @@ def add_fit_arguments(p) -> None:
                    "input like the states (default), or as a polynomial in it "
                    "(--param-degree) with state-dependent coefficients, which cannot wiggle "
                    "in it (the airspeed enters quasi-steady aerodynamics as V and V^2)")
-    p.add_argument("--param-degree", type=positive_int("--param-degree"), default=2,
-                   metavar="D", help="--param-dependence polynomial: the degree (default 2)")
+    p.add_argument("--param-degree", type=positive_int("--param-degree", 0),
+                   default=2, metavar="D", help="--param-dependence polynomial: the degree "
+                   "(default 2; 0: a correction of the states alone)")
     p.add_argument("--rest-free", action="store_true",
                    help="aerofoil: the network's value and slope at rest are subtracted, so "
                    "it cannot move the equilibrium or its linearisation; explicit linear "

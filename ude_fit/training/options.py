@@ -53,8 +53,9 @@ class TrainConfig:
     penalties: tuple[Penalty, ...] = ()
 
     def __post_init__(self):
-        for name in ("width", "depth", "param_degree"):
+        for name in ("width", "depth"):
             _check_int(name, getattr(self, name), 1)
+        _check_int("param_degree", self.param_degree, 0)
         for name in ("equation_steps", "equation_lbfgs_steps", "adam_steps", "lbfgs_steps"):
             if getattr(self, name) is not None:
                 _check_int(name, getattr(self, name), 0)
