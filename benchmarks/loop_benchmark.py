@@ -187,6 +187,17 @@ def _ude_route(res, ds, system: str, seed: int, starts: int) -> dict:
             "ude_description": None if r is None else r.ude.description}
 
 
+def _loop_on(path: str, write, system: str, seed: int):
+    """``write(path)`` a campaign, then the loop with its defaults on it:
+    (dataset, loop result, metrics document, the loop's seconds)."""
+    write(path)
+    ds = load([path], system)
+    t0 = time.perf_counter()
+    res = close_loop(ds, system, seed=seed)
+    secs = time.perf_counter() - t0
+    return ds, res, metrics_document(res), secs
+
+
 def run_located(seeds: int, ude_starts: int = 0, aside: bool = False) -> dict:
     """The non-catalogue cases of tests/located_cases.py (with ``aside``: the two cases put
     aside) through the loop with its defaults, and the STLSQ peer on the same residual; with
@@ -198,13 +209,9 @@ def run_located(seeds: int, ude_starts: int = 0, aside: bool = False) -> dict:
         for case, (system, equation, state) in (ASIDE if aside else CASES).items():
             recs = []
             for seed in range(seeds):
-                path = os.path.join(tmp, f"{case.replace('/', '_')}_{seed}.h5")
-                write_case_campaign(path, case, seed=100 * seed)
-                ds = load([path], system)
-                t0 = time.perf_counter()
-                res = close_loop(ds, system, seed=seed)
-                secs = time.perf_counter() - t0
-                m = metrics_document(res)
+                ds, res, m, secs = _loop_on(
+                    os.path.join(tmp, f"{case.replace('/', '_')}_{seed}.h5"),
+                    lambda p: write_case_campaign(p, case, seed=100 * seed), system, seed)
                 top = next((s for q in (m["location"] or {}).get("equations", [])
                             for s in q["shapes"] if s["significant"]), None)
                 top_eq = next((q["equation"] for q in m["location"]["equations"]
@@ -255,11 +262,9 @@ def run_clean(seeds: int) -> dict:
         for system in ("flutter", "oscillator"):
             recs = []
             for seed in range(seeds):
-                path = os.path.join(tmp, f"clean_{system}_{seed}.h5")
-                write_clean_campaign(path, system, seed=100 * seed)
-                ds = load([path], system)
-                t0 = time.perf_counter()
-                m = metrics_document(close_loop(ds, system, seed=seed))
+                _, _, m, secs = _loop_on(
+                    os.path.join(tmp, f"clean_{system}_{seed}.h5"),
+                    lambda p: write_clean_campaign(p, system, seed=100 * seed), system, seed)
                 kept = [s for s in m["steps"] if s["kept"]]
                 recs.append({
                     "seed": seed, "kept": [s["candidate"] for s in kept],
@@ -269,7 +274,7 @@ def run_clean(seeds: int) -> dict:
                                            if not s["kept"] and s.get("candidate")],
                     "before": m["before"]["branch_rms_with_missed"],
                     "after": m["after"]["branch_rms_with_missed"],
-                    "loop_seconds": round(time.perf_counter() - t0, 2)})
+                    "loop_seconds": round(secs, 2)})
             rows[system] = {"seeds": seeds,
                             "runs_with_a_structural_effect": sum(bool(r["structural_kept"])
                                                                  for r in recs),

@@ -21,6 +21,8 @@ Method
 
 from __future__ import annotations
 
+import functools
+
 import dataclasses
 from dataclasses import dataclass, field
 
@@ -267,6 +269,7 @@ def hopf_point(model: UDE, v_range, n: int = 121) -> dict | None:
         return None
     k = int(idx[0])
 
+    @functools.lru_cache(maxsize=None)      # brentq asks again for the two ends
     def g(V):
         _, lam, _ = _equilibrium_scan(model, jnp.asarray([V]), jnp.zeros(model.n_state))
         return float(jnp.max(jnp.real(lam)))
