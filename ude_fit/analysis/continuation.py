@@ -21,9 +21,8 @@ Method
 
 from __future__ import annotations
 
-import functools
-
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 
 import equinox as eqx
