@@ -34,6 +34,8 @@ NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory"
             "--param-degree", "3", "--reference-hopf", "24.1", "--reference-fold", "20.4",
             "--rest-free", "--starts-together"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
+# fit options the pipeline refuses (tests/test_ude_control_input.py checks the refusal)
+FIT_ONLY_FLAGS = ["--control-input", "--control-gain", "2.5"]
 
 
 def _fit_dests() -> set[str]:
@@ -56,8 +58,17 @@ def test_every_fit_flag_is_set_by_the_test_and_taken_by_the_pipeline():
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     pipe = {a.dest for a in sub.choices["pipeline"]._actions}
     assert _fit_dests() <= pipe
-    flags = {f.lstrip("-").replace("-", "_") for f in NN_FLAGS + GP_FLAGS if f.startswith("--")}
+    flags = {f.lstrip("-").replace("-", "_") for f in NN_FLAGS + GP_FLAGS + FIT_ONLY_FLAGS
+             if f.startswith("--")}
     assert _fit_dests() - {"data", "system", "stability"} == flags
+
+
+def test_the_fit_takes_the_control_flags():
+    args = build_parser().parse_args(["fit", "data.h5", "--system", "flutter",
+                                      *FIT_ONLY_FLAGS, "--out", "o"])
+    opts = fit_options(args)
+    assert opts.control_input and opts.control_gain == 2.5
+    assert opts == FitOptions("flutter", control_input=True, control_gain=2.5)
 
 
 def test_pipeline_hands_the_library_the_options(monkeypatch, tmp_path):

@@ -206,9 +206,12 @@ def _set_targets(board: Board, coeffs) -> None:
 
 def run_board_on_orbit(system: str, truth: dict, *, sigma: float, seed: int,
                        record_s: float, effects: tuple = (),
-                       plugin: str | None = None) -> tuple[dict, dict, float]:
+                       plugin: str | None = None, target_scale: float = 1.0
+                       ) -> tuple[dict, dict, float]:
     """Hold the board on a truth orbit; returns (timeseries, fourier {ch: mean, var},
-    board frequency estimate)."""
+    board frequency estimate). ``target_scale`` (flutter): the target's amplitude is the
+    truth's times this, so that the board holds an orbit of the controlled system instead
+    (what a CBC point accepted with loose tolerances is)."""
     b = Board(RigOptions(kind=system, sigma=sigma, seed=seed, effects=list(effects),
                          plugin=plugin))
     if system == "flutter":
@@ -218,7 +221,7 @@ def run_board_on_orbit(system: str, truth: dict, *, sigma: float, seed: int,
         b.set("phase_mode", 1.0)
         target = np.zeros(NCOEF)
         target[0] = truth["coeffs"][0, 0]
-        target[1] = truth["amplitude"]
+        target[1] = truth["amplitude"] * target_scale
     else:
         kp, kd = OSCILLATOR_GAINS
         b.set("parameter", truth["parameter"])      # the host forcing Phi cos(forcing phase)
@@ -313,8 +316,8 @@ def _point_doc(i: int, system: str, truth: dict, fourier: dict, timeseries: dict
 def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_freq=None,
                          sigma: float = 0.0, seed: int = 0, record_s=None,
                          keep_record: bool = True, effects: tuple = (),
-                         plugin: str | None = None, held_within: float | None = None
-                         ) -> list[dict]:
+                         plugin: str | None = None, held_within: float | None = None,
+                         invasive: float = 0.0) -> list[dict]:
     """Write a campaign file of the rig's true periodic orbits; returns the truth records
     (one per point, in file order; see flutter_truth_orbits / oscillator_truth_orbits).
 
@@ -332,6 +335,9 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
     truth orbit's by more than this fraction (noise knocked the board off an orbit it
     could not hold: a CBC campaign would not log it as converged); returned records are
     then those of the points written.
+    invasive (flutter): hold every point with its target's amplitude (1 + invasive) and
+    (1 - invasive) times the truth's, alternately, so the control stays on (the campaign
+    a CBC run with loose tolerances leaves); the records stay the open-loop truth.
     """
     effects = tuple(effects)
     if system == "flutter":
@@ -350,7 +356,8 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
         if record_s > 0:
             ts, fourier, f_est = run_board_on_orbit(system, tr, sigma=sigma, seed=seed + i,
                                                     record_s=record_s, effects=effects,
-                                                    plugin=plugin)
+                                                    plugin=plugin,
+                                                    target_scale=1 + invasive * (-1) ** i)
             freq = f_est if system == "flutter" else tr["frequency"]
             navg, host = 10, tr["parameter"]
             if not keep_record:

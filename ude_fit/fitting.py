@@ -32,7 +32,9 @@ from .models.mechanistic import FLUTTER_NOMINAL, parameters_of
 from .models.parameter_file import MechanisticParameters
 from .models.ude import UDE
 from .training.gp import fit_gp
-from .training.identify import TrainingData, augment, identify, residual_forces, training_data
+from .training.control import ControlInput, control_input, with_control
+from .training.identify import (INPUT_GAIN, TrainingData, augment, identify, residual_forces,
+                                training_data)
 from .training.optimise import Diverged
 from .training.options import FitOptions
 from .training.train import refine_mechanistic, train_ensemble, train_ude
@@ -233,7 +235,8 @@ def prepare(ds: OrbitDataset, system: str, reference: dict | None, samples: int)
 
 
 def identify_mechanistic(data: TrainingData, system: str, *, bootstrap: int = 0,
-                         seed: int = 0, given: MechanisticParameters | None = None):
+                         seed: int = 0, given: MechanisticParameters | None = None,
+                         free_input: bool = False):
     """The mechanistic model from the data: damping and stiffness by least squares bounded
     to their physical signs (never another rig's values), with the user's ``given`` values
     in their place. The info's ``sources`` says where every parameter came from."""
@@ -241,12 +244,31 @@ def identify_mechanistic(data: TrainingData, system: str, *, bootstrap: int = 0,
     if given is not None and given.known:          # only the aerofoil has known geometry
         base = {**FLUTTER_NOMINAL, **given.known}
     mech, ident = identify(data, system, base, fixed=None if given is None else given.fitted,
-                           bootstrap=bootstrap, seed=seed)
+                           bootstrap=bootstrap, seed=seed, free_input=free_input)
     ident["method"] = "equation error (least squares, damping and stiffness bounded at 0)"
     ident["known"] = {n: v for n, v in parameters_of(mech).items()
                       if n not in ident["parameters"]}
     ident["sources"] = parameter_sources(mech, ident, given)
     return mech, ident
+
+
+def _identify_with_control(ds: OrbitDataset, data: TrainingData, opts: FitOptions):
+    """The training data with the recorded control as a known heave force, and the
+    mechanistic model identified on it (the gain with it where it is not known)."""
+    ctrl = control_input(ds, opts.control_gain)
+    if ctrl.gain is None:
+        raw = with_control(data, ds, 1.0)
+        mech, ident = identify_mechanistic(raw, opts.system, given=opts.mechanistic_parameters,
+                                           free_input=True)
+        gain = ident["parameters"].pop(INPUT_GAIN)
+        se = ident["std_error"].pop(INPUT_GAIN, None)
+        ctrl = ControlInput(ctrl.unit, float(gain), ctrl.source)
+        ident["control"] = {**ctrl.to_json(), "gain_std_error": se}
+    else:
+        mech, ident = identify_mechanistic(with_control(data, ds, ctrl.gain), opts.system,
+                                           given=opts.mechanistic_parameters)
+        ident["control"] = ctrl.to_json()
+    return with_control(data, ds, ctrl.gain), mech, ident
 
 
 def parameter_sources(mech, ident: dict, given: MechanisticParameters | None) -> dict:
@@ -286,7 +308,10 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
         return _fit_on(mechanistic, ds, data, opts, ranges, ref, ref_source, say, t_start,
                        verbose=progress is not None)
     say(event="stage", stage="mechanistic identification")
-    mech, ident = identify_mechanistic(data, opts.system, given=opts.mechanistic_parameters)
+    if opts.control_input:
+        data, mech, ident = _identify_with_control(ds, data, opts)
+    else:
+        mech, ident = identify_mechanistic(data, opts.system, given=opts.mechanistic_parameters)
     mech_model = UDE(mech)
     if opts.mechanistic == "periodic":
         say(event="stage", stage="mechanistic identification (periodic orbits)")

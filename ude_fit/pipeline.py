@@ -37,6 +37,10 @@ class PipelineOptions:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be an integer at least 1, "
                                  f"not {v!r}")
+        if self.fit.control_input:
+            # the loop's identifications take the data open loop: one fact, one model
+            raise ValueError("--control-input applies to ude-fit fit only (the loop fits "
+                             "the orbits as open-loop ones)")
         if not isinstance(self.locate_shapes, bool):
             raise ValueError(f"locate_shapes must be true or false, not {self.locate_shapes!r}")
         if not (isinstance(self.min_gain, (int, float)) and math.isfinite(self.min_gain)

@@ -114,6 +114,14 @@ def add_fit_arguments(p) -> None:
                    "it cannot move the equilibrium or its linearisation; explicit linear "
                    "terms on the displacements and velocities, affine in the airspeed, carry "
                    "the linear change (where the Hopf point lies)")
+    p.add_argument("--control-input", action="store_true",
+                   help="aerofoil: the recorded holding control as a known force on heave, "
+                   "so a point held with some control is fitted as an orbit of the "
+                   "controlled system; the diagram is the open-loop one")
+    p.add_argument("--control-gain", type=finite_float("--control-gain"), metavar="G",
+                   help="--control-input: newtons per unit of the recorded control (default: "
+                   "1 for a control recorded in N, else identified with the mechanistic "
+                   "parameters)")
     p.add_argument("--mechanistic-params", metavar="FILE.toml",
                    help="the mechanistic model's values you know (TOML, name = number): "
                    "geometry replaces the design values, damping/stiffness given are not "
@@ -141,6 +149,7 @@ def fit_options(args):
         system=args.system, approximator=args.approximator, training=args.training,
         starts=args.starts, starts_together=args.starts_together, seed=args.seed,
         mechanistic=args.mechanistic,
+        control_input=args.control_input, control_gain=args.control_gain,
         reference_hopf=args.reference_hopf, reference_fold=args.reference_fold,
         train=TrainConfig(width=args.width, depth=args.depth, param_scale=args.param_scale,
                           param_dependence=args.param_dependence,

@@ -117,7 +117,7 @@ def _flutter_point(g, label: str, rec: dict | None, sample_rate: float, a: dict,
         raise DataError(f"{label}: no valid frequency ({a.get('frequency')!r})")
     noise = np.full(2, np.nan)
     periods = _as_float(settings.get("navg"))
-    coeffs = holding = None
+    coeffs = holding = control = None
     if (rec is not None and sample_rate > 0 and "sample" in rec and "x" in rec and "q2" in rec):
         t = rec["sample"].astype(float) / sample_rate
         dur = float(t[-1] - t[0]) if t.size > 1 else 0.0
@@ -127,6 +127,9 @@ def _flutter_point(g, label: str, rec: dict | None, sample_rate: float, a: dict,
             coeffs, noise = fourier_fit(t, Y, freq)
             periods = dur * freq
             holding = _holding(rec, 2.0 * np.pi * freq * t, settings, freq, "N")
+            u = rec.get("control")
+            if u is not None and np.all(np.isfinite(u)):
+                control = fourier_fit(t, u.astype(float), freq)[0]   # same time origin
     if coeffs is None:
         resp = _dataset(g, "fourier/response/mean")
         second = _dataset(g, "fourier/second/mean")
@@ -135,12 +138,20 @@ def _flutter_point(g, label: str, rec: dict | None, sample_rate: float, a: dict,
                             "fourier/second means")
         coeffs = np.stack([_coeff_array(resp, f"{label}: fourier/response/mean"),
                            _coeff_array(second, f"{label}: fourier/second/mean")])
+        # the board correlates every channel against the same phase
+        ctrl = _dataset(g, "fourier/control/mean")
+        control = None if ctrl is None else _coeff_array(ctrl, f"{label}: fourier/control/mean")
     airspeed = _as_float(a.get("parameter"))
     if not math.isfinite(airspeed):
         raise DataError(f"{label}: no valid airspeed (parameter = {a.get('parameter')!r})")
+    if control is None:
+        coeffs = _flutter_frame(coeffs)
+    else:
+        coeffs, control = _flutter_frame(coeffs, control)
     return Orbit(parameter=airspeed, frequency=freq,
-                 **_stability(a, label), coeffs=_flutter_frame(coeffs), forcing=None,
-                 noise=noise, periods=periods, source=label, holding=holding)
+                 **_stability(a, label), coeffs=coeffs, forcing=None,
+                 noise=noise, periods=periods, source=label, holding=holding,
+                 control=control)
 
 
 def _oscillator_point(g, label: str, rec: dict | None, sample_rate: float, a: dict,

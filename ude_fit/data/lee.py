@@ -77,11 +77,21 @@ def _lee_file(path: str) -> Orbit:
     # the control target (row 1) is in the heave sensor's volts, the control (row 2) in the
     # actuator's volts (its gain N/V is not in the files)
     holding = measure_holding(phi, data[0], data[1], data[2], "V")
+    control = None
+    if np.all(np.isfinite(data[2])):
+        control = _fit(phi, data[2][:, None].astype(float), K)[0][0]
+        # the heave's mean was removed (the sensor's offset), so the static force balance
+        # it would close is unknown: the control's mean is left out with it
+        control[0] = 0.0
     stable = stability_from_name(path)
+    if control is None:
+        coeffs = _flutter_frame(coeffs)
+    else:
+        coeffs, control = _flutter_frame(coeffs, control)
     return Orbit(parameter=V, frequency=freq, stable=stable,
                  stability_from="" if stable is None else "file name",
-                 coeffs=_flutter_frame(coeffs), forcing=None, noise=noise,
-                 periods=n / rate * freq, source=path, holding=holding)
+                 coeffs=coeffs, forcing=None, noise=noise,
+                 periods=n / rate * freq, source=path, holding=holding, control=control)
 
 
 def load_lee(path) -> OrbitDataset:

@@ -89,6 +89,11 @@ class Orbit:
       "--stability RULE"; "" while unknown).
     holding: how invasive the control that held the orbit was (:class:`Holding`), None
       where the file does not record the control.
+    control: flutter only, (15,) coefficients of the recorded holding control in the same
+      phase frame as coeffs and in ``holding.control_unit`` (N on a simulated campaign,
+      volts in the lee2020 files); None where the file does not record it. A fit may take
+      it as a known input (``--control-input``); the oscillator's ``forcing`` already holds
+      its control (the total excitation).
     """
 
     parameter: float
@@ -101,6 +106,7 @@ class Orbit:
     source: str
     stability_from: str = ""
     holding: Holding | None = None
+    control: np.ndarray | None = None
 
     def __post_init__(self):
         c = _frozen(self.coeffs)
@@ -112,6 +118,11 @@ class Orbit:
             if fc.shape != (NCOEF,):
                 raise ValueError(f"{self.source}: forcing must be ({NCOEF},), got {fc.shape}")
             object.__setattr__(self, "forcing", fc)
+        if self.control is not None:
+            uc = _frozen(self.control)
+            if uc.shape != (NCOEF,):
+                raise ValueError(f"{self.source}: control must be ({NCOEF},), got {uc.shape}")
+            object.__setattr__(self, "control", uc)
         nz = _frozen(np.broadcast_to(np.asarray(self.noise, dtype=float), (c.shape[0],)))
         object.__setattr__(self, "noise", nz)
         object.__setattr__(self, "parameter", float(self.parameter))
@@ -289,9 +300,13 @@ class OrbitDataset:
 
 # ==== frames ======================================================================================
 
-def _flutter_frame(coeffs: np.ndarray) -> np.ndarray:
-    """Shift so the heave's fundamental is +A cos(phi)."""
-    return shift_phase(coeffs, math.atan2(coeffs[0, 1 + K], coeffs[0, 1]))
+def _flutter_frame(coeffs: np.ndarray, control: np.ndarray | None = None):
+    """Shift so the heave's fundamental is +A cos(phi); with ``control`` (15,), the pair
+    (coeffs, control) both shifted by the same angle."""
+    d = math.atan2(coeffs[0, 1 + K], coeffs[0, 1])
+    if control is None:
+        return shift_phase(coeffs, d)
+    return shift_phase(coeffs, d), shift_phase(control, d)
 
 
 def _oscillator_frame(coeffs: np.ndarray, forcing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -35,7 +35,10 @@ class Drive(eqx.Module):
     """The imposed inputs: bifurcation parameter, forcing frequency and forcing series."""
     param: jax.Array
     omega: jax.Array
-    fc: jax.Array   # (15,) excitation Fourier coefficients (m/s^2); zeros for the aerofoil
+    # (15,) Fourier coefficients of the imposed input in the phase omega t: the base
+    # acceleration (m/s^2) on the oscillator; on the aerofoil the holding control's force
+    # on heave (N) when a fit takes it as a known input, else zeros (the open-loop system)
+    fc: jax.Array
 
     @staticmethod
     def of(param, omega=0.0, fc=None) -> "Drive":
@@ -178,11 +181,15 @@ class FlutterQS(MechanisticModel):
     def parameter_feature(self, drive: Drive):
         return drive.param                     # the airspeed
 
+    def _control(self, t, drive: Drive):
+        """The imposed force (N) on heave: the holding control, when given as an input."""
+        return jnp.array([1.0, 0.0]) * drive.excitation(t)
+
     def accelerations(self, F, t, drive: Drive):
-        return jnp.linalg.solve(self.mass(drive.param), F)
+        return jnp.linalg.solve(self.mass(drive.param), F + self._control(t, drive))
 
     def residual_force(self, qdd, F, t, drive: Drive):
-        return self.mass(drive.param) @ qdd - F
+        return self.mass(drive.param) @ qdd - F - self._control(t, drive)
 
     def library_states(self, q, qd, drive: Drive) -> dict:
         """The named states the effect library's formulas read."""
@@ -213,6 +220,7 @@ class FlutterQS(MechanisticModel):
                                         jnp.asarray(qdd[m]), V)
             A[m] = np.asarray(Am)
             b[m] = -np.asarray(known)
+        b[:, 0] += np.asarray(excitation, float)     # the imposed heave force (zero open loop)
         return A, b, mech
 
     @classmethod

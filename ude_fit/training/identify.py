@@ -85,9 +85,12 @@ def _excitation(fc, omega, t):
     return fc[:, 0] + (fc[:, 1:K + 1] * np.cos(ph)).sum(1) + (fc[:, K + 1:] * np.sin(ph)).sum(1)
 
 
+INPUT_GAIN = "input_gain"      # the free gain of an imposed input (identify's free_input)
+
+
 def identify(data: TrainingData, system: str, base: dict | None = None,
              effects: tuple = (), *, fixed: dict | None = None, bootstrap: int = 0,
-             seed: int = 0):
+             seed: int = 0, free_input: bool = False):
     """Least-squares damping and stiffness (aerofoil) or all coefficients (oscillator),
     and the coefficients of any ``effects`` ((key, shape) pairs from the library), which
     make the result a :class:`~ude_fit._refined.Refined` model. ``base``: the known
@@ -104,8 +107,11 @@ def identify(data: TrainingData, system: str, base: dict | None = None,
     samples taken as independent) and, with ``bootstrap`` > 0, the standard deviations
     over that many refits to orbits resampled with replacement (the honest figure: the
     samples of one orbit are not independent).
+
+    ``free_input``: the drive's input (the aerofoil's recorded control) enters with an
+    unknown gain, identified with the rest as the value :data:`INPUT_GAIN`.
     """
-    A, b, names, _ = regression(data, system, base, effects)
+    A, b, names, _ = regression(data, system, base, effects, free_input=free_input)
     fixed = {k: float(v) for k, v in (fixed or {}).items()}
     unknown = set(fixed) - set(names)
     if unknown:
@@ -171,13 +177,16 @@ def build(system: str, base: dict | None, values: dict, effects: tuple = ()):
 
 
 def regression(data: TrainingData, system: str, base: dict | None = None,
-               effects: tuple = ()):
+               effects: tuple = (), free_input: bool = False):
     """Equation-error regression ``A theta = b`` on every sample: A (N, n_eq, p), b (N, n_eq),
     the parameter names, and the unfitted mechanistic model. Effect columns enter with a
-    minus sign: the model is ``known + A theta = 0`` with the effect on the right-hand side."""
+    minus sign: the model is ``known + A theta = 0`` with the effect on the right-hand side.
+    ``free_input``: the drive's input acts on the first equation with an unknown gain (a
+    last column, :data:`INPUT_GAIN`) instead of as a known force."""
     y, qdd, P, W, FC, t = _flat(data)
     cls = model_class(system)
-    A, b, mech = cls.equation_error(y, qdd, P, _excitation(FC, W, t), base)
+    E = _excitation(FC, W, t)
+    A, b, mech = cls.equation_error(y, qdd, P, np.zeros_like(E) if free_input else E, base)
     names = list(cls.fitted)
     # the model's own nonlinear columns (alpha^2, x^3, ...) compared in the band the
     # measured orbits carry, as the effect columns are (_library.band_limited)
@@ -193,6 +202,11 @@ def regression(data: TrainingData, system: str, base: dict | None = None,
             extra.append(block)
             names += [f"{key}[{t}]" for t in e.terms]
         A = np.concatenate([A] + extra, axis=2)
+    if free_input:
+        col = np.zeros(A.shape[:2] + (1,))
+        col[:, 0, 0] = -E
+        A = np.concatenate([A, col], axis=2)
+        names.append(INPUT_GAIN)
     return A, b, names, mech
 
 

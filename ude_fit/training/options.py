@@ -148,6 +148,10 @@ class FitOptions:
     reference_fold: float | None = None   # known fold airspeed (m/s)
     # the user's values for the mechanistic model (--mechanistic-params FILE.toml)
     mechanistic_parameters: MechanisticParameters | None = None
+    # the aerofoil's recorded holding control as a known force on heave (training.control);
+    # control_gain: N per unit of the record (None: 1 for a record in N, else identified)
+    control_input: bool = False
+    control_gain: float | None = None
 
     def __post_init__(self):
         if self.system not in SYSTEMS:
@@ -192,6 +196,19 @@ class FitOptions:
         if not system_kind(self.system).autonomous and self.train.rest_free:
             raise ValueError("--rest-free applies to --system flutter only (a forced "
                              "system has no equilibrium at rest)")
+        if not isinstance(self.control_input, bool):
+            raise ValueError(f"control_input must be True or False, not {self.control_input!r}")
+        if self.control_input and not system_kind(self.system).autonomous:
+            raise ValueError("--control-input applies to --system flutter only (the "
+                             "oscillator's excitation already includes its control)")
+        if self.control_gain is not None:
+            g = self.control_gain
+            if not self.control_input:
+                raise ValueError("--control-gain needs --control-input")
+            if not (isinstance(g, (int, float)) and not isinstance(g, bool)
+                    and math.isfinite(g) and g != 0):
+                raise ValueError(f"--control-gain must be a finite number other than 0, "
+                                 f"not {g!r}")
         if not isinstance(self.starts_together, bool):
             raise ValueError(f"starts_together must be True or False, not "
                              f"{self.starts_together!r}")

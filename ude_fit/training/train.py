@@ -111,6 +111,10 @@ def _periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
     autonomous = model.mech.autonomous
 
     def one(ys, y0, T, drive, label):
+        if autonomous:
+            # an imposed input (the holding control, when given) is periodic in the
+            # orbit's own period, which is an unknown here
+            drive = eqx.tree_at(lambda d: d.omega, drive, 2.0 * jnp.pi / T)
         yT, sim, M = _simulate_with_monodromy(model, y0, T, drive, n, sub)
         s = model.mech.stability_indicator(M)
         fit = jnp.mean(((sim - ys) / data.y_scale) ** 2)

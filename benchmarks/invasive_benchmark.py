@@ -1,0 +1,69 @@
+"""The control as a known input on a campaign held deliberately invasively (issue 17):
+prints one JSON object.
+
+For every looseness (the target's amplitude off the truth orbit's by that fraction,
+alternately above and below; tests/invasive_cases.py) and noise level: the default fit of
+the non-invasive campaign ("held"), of the invasive one with the recorded control as an
+input ("loose+control") and without ("loose"), each judged against the rig's own open-loop
+orbits: branch RMS, missed orbits, Hopf and fold airspeeds (truth 23.95 and 16.82 m/s),
+adequate starts and the wall time of the fit.
+
+    python3 benchmarks/invasive_benchmark.py [--loose 0.05,0.15] [--sigmas 0,0.02]
+        [--seeds 0] [--starts 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+from tests.invasive_cases import fit_cases  # noqa: E402
+
+
+def _floats(text: str) -> list[float]:
+    return [float(x) for x in text.split(",") if x.strip()]
+
+
+def _figures(result, metrics, seconds) -> dict:
+    j = None if metrics is None else metrics.to_json()
+    out = {"adequate_starts": result.adequate, "seconds": round(seconds, 1)}
+    if j is not None:
+        out.update(branch_rms_vs_truth=j["branch_rms"], missed=j["missed"],
+                   hopf=j["hopf"]["model"], fold=j["fold"]["model"])
+    control = result.identification.get("control")
+    if control is not None:
+        out["control"] = control
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--loose", type=_floats, default=[0.05, 0.15])
+    ap.add_argument("--sigmas", type=_floats, default=[0.0, 0.02])
+    ap.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")], default=[0])
+    ap.add_argument("--starts", type=int, default=2)
+    a = ap.parse_args(argv)
+    runs = []
+    for loose in a.loose:
+        for sigma in a.sigmas:
+            for seed in a.seeds:
+                with tempfile.TemporaryDirectory() as d:
+                    cases = fit_cases(d, loose, sigma=sigma, seed=seed, starts=a.starts)
+                runs.append({"loose": loose, "sigma": sigma, "seed": seed,
+                             **{name: _figures(*c) for name, c in cases.items()}})
+                print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
+    print(json.dumps({"benchmark": "invasive", "starts": a.starts, "runs": runs}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

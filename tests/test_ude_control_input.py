@@ -1,0 +1,142 @@
+"""The holding control as a known input (issue 17): the recorded control comes in with the
+orbit in its phase frame, its gain is 1 for a force record, given, or identified, and a
+campaign held deliberately invasively is fitted as orbits of the controlled system.
+
+Truth: a lee2020-format file with a control of known amplitude and phase; the simulated
+rig held on its own orbits with the target's amplitude off the truth's (the board then
+holds an orbit of the controlled system; the control it applies is the recorded one) and
+the rig's own open-loop orbits at the same airspeeds.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from tests import ude_fixtures as F
+from tests.invasive_cases import fit_cases
+from tests.test_ude_realdata import write_lee
+from ude_fit import cli
+from ude_fit._fourier import K
+from ude_fit.data import load
+from ude_fit.fitting import identify_mechanistic, prepare
+from ude_fit.training.control import with_control
+from ude_fit.training.identify import INPUT_GAIN
+
+import jax  # noqa: E402  (after the imports above, before any array)
+
+jax.config.update("jax_enable_x64", True)
+
+AIRSPEEDS = (19.0, 21.0, 23.0, 25.5)
+INVASIVE = 0.15
+
+
+@pytest.fixture(scope="module")
+def invasive(tmp_path_factory):
+    """A campaign held with the target 15 % off every truth orbit (alternately above and
+    below), sigma = 0, and the truth records."""
+    path = tmp_path_factory.mktemp("invasive") / "invasive.h5"
+    truth = F.write_truth_campaign(path, "flutter", airspeeds=AIRSPEEDS, sigma=0.0,
+                                   record_s=2.0, invasive=INVASIVE)
+    return path, truth
+
+
+def test_the_control_comes_in_the_orbits_frame(tmp_path):
+    """lee2020 format: a control c cos(phi + 0.3) V against the heave's cos(phi): the
+    orbit's control is that cosine in the frame where the heave is +A cos(phi), without
+    its mean (the heave's was removed)."""
+    write_lee(tmp_path / "CBC_v1.mat", control=4e-3)
+    (o,) = load(tmp_path, "flutter")
+    assert o.control.shape == (2 * K + 1,)
+    assert o.control[0] == 0.0
+    assert o.control[1] == pytest.approx(4e-3 * math.cos(0.3), rel=1e-6)
+    assert o.control[1 + K] == pytest.approx(-4e-3 * math.sin(0.3), rel=1e-6)
+    assert np.abs(o.control[np.r_[2:K + 1, K + 2:2 * K + 1]]).max() < 1e-9
+
+
+def test_gain_is_identified_from_the_orbits(invasive):
+    """The rig's control is a force (N), gain 1: identified free, the gain comes out of
+    the right sign and size but not exactly 1 (measured 1.27 on seven airspeeds, 1.54 on
+    these four: the quasi-steady model leaves the unsteady lag's force to the residual,
+    and the control, which follows the orbit, takes part of it), and a record in another
+    unit (the same control divided by 5) gives 5 times that gain, the other parameters
+    unchanged."""
+    ds = load([invasive[0]], "flutter")
+    assert all(o.holding.control_unit == "N" and o.holding.invasive for o in ds)
+    data = prepare(ds, "flutter", None, 32)[0]
+    _, one = identify_mechanistic(with_control(data, ds, 1.0), "flutter", free_input=True)
+    _, fifth = identify_mechanistic(with_control(data, ds, 0.2), "flutter", free_input=True)
+    g = one["parameters"][INPUT_GAIN]
+    assert 0.5 < g < 2.0, g
+    assert fifth["parameters"][INPUT_GAIN] == pytest.approx(5 * g, rel=1e-8)
+    for name in ("c_h", "k_h", "c_alpha", "k_alpha"):
+        assert fifth["parameters"][name] == pytest.approx(one["parameters"][name], rel=1e-8)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--system", "oscillator", "--control-input"], "--control-input applies to --system "
+     "flutter only"),
+    (["--system", "flutter", "--control-gain", "2"], "--control-gain needs --control-input"),
+    (["--system", "flutter", "--control-input", "--control-gain", "0"],
+     "--control-gain must be a finite number other than 0"),
+])
+def test_control_options_are_checked(tmp_path, capsys, argv, message):
+    write_lee(tmp_path / "CBC_v1.mat", control=4e-3)
+    out = tmp_path / "out"
+    rc = cli.main(["fit", str(tmp_path / "CBC_v1.mat"), *argv, "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
+
+
+def test_pipeline_refuses_the_control_input(tmp_path, capsys):
+    """The loop fits the orbits open loop: a pipeline with the control input would mix
+    two models of the same data, so it is refused, not ignored."""
+    write_lee(tmp_path / "CBC_v1.mat", control=4e-3)
+    rc = cli.main(["pipeline", str(tmp_path / "CBC_v1.mat"), "--system", "flutter",
+                   "--control-input", "--out", str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--control-input applies to ude-fit fit only" in err, err
+
+
+# ---- fits: the invasive campaign with and without the control, the non-invasive one ----
+
+LOOSE = 0.05        # the target 5 % off the truth orbit: orbits held 2-8 % off theirs
+
+
+@pytest.fixture(scope="module")
+def fits(tmp_path_factory):
+    """One start of the default fit on: the non-invasive campaign; the invasive one with
+    the control as an input; the invasive one without (tests/invasive_cases.py)."""
+    out = fit_cases(tmp_path_factory.mktemp("fits"), LOOSE)
+    for name, (r, m, _) in out.items():
+        assert r.ude is not None and m is not None, name
+    return {name: (r, m) for name, (r, m, _) in out.items()}
+
+
+def test_the_control_input_recovers_the_open_loop_diagram(fits):
+    """The invasive campaign's points are 2-8 % off the open-loop orbits; fitted with the
+    control as a known input, the open-loop diagram is at most half as far from the truth
+    as the same fit without it (measured 0.66 % against 2.06 %), every truth
+    orbit found; the identification records the gain and where it came from."""
+    with_u, without = fits["loose+control"][1].summary, fits["loose"][1].summary
+    assert with_u.missed == 0 and without.missed == 0
+    assert with_u.branch_rms <= 0.5 * without.branch_rms, (with_u, without)
+    ident = fits["loose+control"][0].to_json()["mechanistic"]["identification"]
+    assert ident["control"] == {"unit": "N", "gain": 1.0,
+                                "gain_source": "the control is recorded as a force (N)"}
+    assert "control" not in fits["loose"][0].to_json()["mechanistic"]["identification"]
+
+
+@pytest.mark.xfail(strict=True, reason="issue 17's criterion, not met: measured Hopf 24.83 "
+                   "against the non-invasive fit's 23.84 m/s, branch error 0.66 % against "
+                   "0.08 % (docs/experiments.md)")
+def test_the_control_input_matches_a_non_invasive_fit(fits):
+    """Issue 17: Hopf and fold within 0.1 m/s of the non-invasive fit's, branch error
+    against the truth at most 1.5 times its."""
+    held, with_u = fits["held"][1].to_json(), fits["loose+control"][1].to_json()
+    assert abs(with_u["hopf"]["model"] - held["hopf"]["model"]) <= 0.1
+    assert abs(with_u["fold"]["model"] - held["fold"]["model"]) <= 0.1
+    assert with_u["branch_rms"] <= 1.5 * held["branch_rms"]

@@ -1,0 +1,68 @@
+"""The holding control as a known input (the aerofoil): a point held with some control is
+an orbit of the *controlled* system, so a fit that knows the recorded control force fits
+it as one, instead of misreading it as an open-loop orbit.
+
+The control acts on heave (the rig's actuator); its record is in the channel's own unit
+(N on a simulated campaign, volts in the lee2020 files), so the force is ``gain`` times
+it. The gain is 1 where the control is recorded as a force, the user's where given, and
+otherwise identified with the mechanistic parameters by the same equation-error least
+squares (a column of the heave equation). Only the training sees the input: the fitted
+model's diagram is the open-loop system's (no input), the diagram the data stands for.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..data.orbit import DataError, OrbitDataset
+from .identify import TrainingData
+
+FORCE_UNIT = "N"        # a control recorded in this unit is the force itself (gain 1)
+
+
+@dataclass(frozen=True)
+class ControlInput:
+    """How a fit takes the recorded control: its unit, the gain (N per unit; None until
+    identified) and where the gain came from."""
+    unit: str
+    gain: float | None
+    source: str
+
+    def to_json(self) -> dict:
+        return {"unit": self.unit, "gain": self.gain, "gain_source": self.source}
+
+
+def control_input(ds: OrbitDataset, given_gain: float | None) -> ControlInput:
+    """The dataset's control input: every orbit must carry its control record in one unit
+    (a DataError naming the first that does not)."""
+    units = set()
+    for o in ds:
+        if o.control is None or o.holding is None:
+            raise DataError(f"{o.source}: no recorded control, so --control-input cannot "
+                            "use it (leave the option out)")
+        units.add(o.holding.control_unit)
+    if len(units) != 1:
+        raise DataError(f"the points' controls are recorded in different units "
+                        f"({', '.join(sorted(units))}); --control-input needs one")
+    unit = units.pop()
+    if given_gain is not None:
+        return ControlInput(unit, float(given_gain), "given (--control-gain)")
+    if unit == FORCE_UNIT:
+        return ControlInput(unit, 1.0, "the control is recorded as a force (N)")
+    return ControlInput(unit, None, "identified with the mechanistic parameters "
+                                    "(equation error, heave equation)")
+
+
+def with_control(data: TrainingData, ds: OrbitDataset, gain: float) -> TrainingData:
+    """``data`` with every orbit's imposed heave force: ``gain`` times its recorded
+    control, in the orbit's phase frame (the drive's omega is the orbit's own)."""
+    if not math.isfinite(gain):
+        raise ValueError(f"the control gain must be finite, not {gain!r}")
+    fc = jnp.asarray(np.stack([gain * np.asarray(o.control, float) for o in ds]))
+    drive = type(data.drive)(data.drive.param, data.drive.omega, fc)
+    return TrainingData(data.ys, data.qdd, data.period, drive, data.label, data.y_scale,
+                        data.amp_max)
