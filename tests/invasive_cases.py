@@ -31,9 +31,9 @@ def truth_dataset(records):
 
 
 def fit_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
-              starts: int = 1) -> dict:
+              starts: int = 1, names=tuple(name for name, _, _ in FITS)) -> dict:
     """{name: (FitResult, the kept UDE's ModelMetrics against the truth, fit seconds)} for
-    the three fits of :data:`FITS` on campaigns written under ``folder``."""
+    the fits of :data:`FITS` called ``names`` on campaigns written under ``folder``."""
     from ude_fit.analysis.diagram import _evaluate
     from ude_fit.data import load
     from ude_fit.fitting import fit
@@ -46,7 +46,7 @@ def fit_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
                          seed=seed, record_s=2.0, invasive=loose)
     truth_ds = truth_dataset(truth)
     out = {}
-    for name, path, control in FITS:
+    for name, path, control in (f for f in FITS if f[0] in names):
         t0 = time.perf_counter()
         r = fit(load([folder / path], "flutter"),
                 FitOptions("flutter", starts=starts, seed=seed, control_input=control),

@@ -108,9 +108,13 @@ LOOSE = 0.05        # the target 5 % off the truth orbit: orbits held 2-8 % off 
 
 @pytest.fixture(scope="module")
 def fits(tmp_path_factory):
-    """One start of the default fit on: the non-invasive campaign; the invasive one with
-    the control as an input; the invasive one without (tests/invasive_cases.py)."""
-    out = fit_cases(tmp_path_factory.mktemp("fits"), LOOSE)
+    """One start of the default fit on the invasive campaign, with the control as an input
+    and without (tests/invasive_cases.py). The issue's comparison with a fit to the
+    non-invasive campaign (Hopf and fold within 0.1 m/s of its, error at most 1.5 times
+    its) is not met and is measured by benchmarks/invasive_benchmark.py, not here: with
+    the control, Hopf 24.83 against that fit's 23.84 m/s, error 0.66 % against 0.08 %."""
+    out = fit_cases(tmp_path_factory.mktemp("fits"), LOOSE,
+                    names=("loose+control", "loose"))
     for name, (r, m, _) in out.items():
         assert r.ude is not None and m is not None, name
     return {name: (r, m) for name, (r, m, _) in out.items()}
@@ -129,14 +133,3 @@ def test_the_control_input_recovers_the_open_loop_diagram(fits):
                                 "gain_source": "the control is recorded as a force (N)"}
     assert "control" not in fits["loose"][0].to_json()["mechanistic"]["identification"]
 
-
-@pytest.mark.xfail(strict=True, reason="issue 17's criterion, not met: measured Hopf 24.83 "
-                   "against the non-invasive fit's 23.84 m/s, branch error 0.66 % against "
-                   "0.08 % (docs/experiments.md)")
-def test_the_control_input_matches_a_non_invasive_fit(fits):
-    """Issue 17: Hopf and fold within 0.1 m/s of the non-invasive fit's, branch error
-    against the truth at most 1.5 times its."""
-    held, with_u = fits["held"][1].to_json(), fits["loose+control"][1].to_json()
-    assert abs(with_u["hopf"]["model"] - held["hopf"]["model"]) <= 0.1
-    assert abs(with_u["fold"]["model"] - held["fold"]["model"]) <= 0.1
-    assert with_u["branch_rms"] <= 1.5 * held["branch_rms"]
