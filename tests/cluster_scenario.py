@@ -140,17 +140,30 @@ class Driver:
 
 
 def _wait_running(where, fragment: str, for_s: float, driver: Driver,
-                  timeout: float = 300) -> None:
-    """Until a process matching `fragment` has run on `where` (a node, or any node of a
-    cluster) for `for_s` seconds, while `driver` runs."""
-    t0, since = time.time(), None
+                  timeout: float = 300) -> int:
+    """Until one process matching `fragment` has run on `where` (a node, or any node of a
+    cluster) for `for_s` seconds, while `driver` runs; returns its pid."""
+    t0, seen = time.time(), {}
     while time.time() - t0 < timeout and driver.proc.poll() is None:
-        pids = where.running(fragment)
-        since = (since or time.time()) if pids else None
-        if since and time.time() - since >= for_s:
-            return
+        now = time.time()
+        seen = {pid: seen.get(pid, now) for pid in where.running(fragment)}
+        for pid, since in seen.items():
+            if now - since >= for_s:
+                return pid
         time.sleep(0.2)
     raise RuntimeError(f"no {fragment!r} ran: {driver.err.decode()[-3000:]}")
+
+
+def _freeze_member(where, driver: Driver, for_s: float = 2.0) -> int:
+    """A member's controller that has run on `where` for `for_s` seconds, stopped (SIGSTOP)
+    so that it cannot finish between being chosen and its node being lost; its pid."""
+    while True:
+        pid = _wait_running(where, "cbc_controller.cli run", for_s, driver)
+        try:
+            os.kill(pid, signal.SIGSTOP)
+            return pid
+        except ProcessLookupError:     # it finished just now: take the next one
+            continue
 
 
 def _wait_points(member_folder: str, n: int, timeout: float = 300) -> None:
@@ -212,8 +225,8 @@ def main(work: Path) -> None:
 
         # fleet A: the second node is lost while both nodes run members
         a = _fleet(str(work / "fleet_a.toml"), work / "A", env)
-        _wait_running(second, "cbc_controller.cli run", 2.0, a)   # a member under way
-        res["lost_member"] = _member_of(second.running("cbc_controller.cli run")[0])
+        # a member under way there, frozen so that it is still unfinished when the node goes
+        res["lost_member"] = _member_of(_freeze_member(second, a))
         second.kill()
         res["killed_at"] = a.err.decode().count("\n[")
         third = cluster.add_node(num_cpus=1)

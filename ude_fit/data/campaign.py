@@ -144,10 +144,7 @@ def _flutter_point(g, label: str, rec: dict | None, sample_rate: float, a: dict,
     airspeed = _as_float(a.get("parameter"))
     if not math.isfinite(airspeed):
         raise DataError(f"{label}: no valid airspeed (parameter = {a.get('parameter')!r})")
-    if control is None:
-        coeffs = _flutter_frame(coeffs)
-    else:
-        coeffs, control = _flutter_frame(coeffs, control)
+    coeffs, control = _flutter_frame(coeffs, control)
     return Orbit(parameter=airspeed, frequency=freq,
                  **_stability(a, label), coeffs=coeffs, forcing=None,
                  noise=noise, periods=periods, source=label, holding=holding,

@@ -84,10 +84,7 @@ def _lee_file(path: str) -> Orbit:
         # it would close is unknown: the control's mean is left out with it
         control[0] = 0.0
     stable = stability_from_name(path)
-    if control is None:
-        coeffs = _flutter_frame(coeffs)
-    else:
-        coeffs, control = _flutter_frame(coeffs, control)
+    coeffs, control = _flutter_frame(coeffs, control)
     return Orbit(parameter=V, frequency=freq, stable=stable,
                  stability_from="" if stable is None else "file name",
                  coeffs=coeffs, forcing=None, noise=noise,

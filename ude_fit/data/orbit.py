@@ -301,12 +301,10 @@ class OrbitDataset:
 # ==== frames ======================================================================================
 
 def _flutter_frame(coeffs: np.ndarray, control: np.ndarray | None = None):
-    """Shift so the heave's fundamental is +A cos(phi); with ``control`` (15,), the pair
-    (coeffs, control) both shifted by the same angle."""
+    """(coeffs, control) shifted so the heave's fundamental is +A cos(phi), the control
+    (15,) by the same angle (None stays None)."""
     d = math.atan2(coeffs[0, 1 + K], coeffs[0, 1])
-    if control is None:
-        return shift_phase(coeffs, d)
-    return shift_phase(coeffs, d), shift_phase(control, d)
+    return shift_phase(coeffs, d), None if control is None else shift_phase(control, d)
 
 
 def _oscillator_frame(coeffs: np.ndarray, forcing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -63,6 +64,4 @@ def with_control(data: TrainingData, ds: OrbitDataset, gain: float) -> TrainingD
     if not math.isfinite(gain):
         raise ValueError(f"the control gain must be finite, not {gain!r}")
     fc = jnp.asarray(np.stack([gain * np.asarray(o.control, float) for o in ds]))
-    drive = type(data.drive)(data.drive.param, data.drive.omega, fc)
-    return TrainingData(data.ys, data.qdd, data.period, drive, data.label, data.y_scale,
-                        data.amp_max)
+    return eqx.tree_at(lambda d: d.drive.fc, data, fc)
