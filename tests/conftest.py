@@ -59,3 +59,20 @@ def flutter_truth() -> dict:
     from tests.ude_fixtures import flutter_branch
     br = flutter_branch()
     return {"hopf": br.hopf[0], "fold": min(f["V"] for f in br.folds)}
+
+
+def pytest_configure(config):
+    config.addinivalue_line(
+        "markers", "minutes(n): the module's expected wall time on 2 shared cores; CI starts "
+        "the longest modules first so that its two workers finish together")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Longest modules first (their ``minutes`` mark; unmarked ones are short), the order
+    within a module and among equals kept: with ``--dist loadfile --no-loadscope-reorder``
+    the workers take whole modules in this order, so a long module never starts last and
+    leaves the other worker idle (the default orders them by their number of tests)."""
+    def minutes(item):
+        mark = item.get_closest_marker("minutes")
+        return mark.args[0] if mark else 0.0
+    items.sort(key=lambda item: -minutes(item))

@@ -25,6 +25,8 @@ import yaml
 from cbc_controller.log import read_campaign
 from rig_sim.physics.truth import flutter_lco_at, flutter_lco_branch
 
+pytestmark = pytest.mark.minutes(4)   # CI order: tests/conftest.py
+
 REPO = Path(__file__).resolve().parents[1]
 COMPOSE = REPO / "docker-compose.yml"
 AIRSPEEDS = (19.5, 22.3)

@@ -27,6 +27,8 @@ from ude_fit.training.identify import INPUT_GAIN
 
 import jax  # noqa: E402  (after the imports above, before any array)
 
+pytestmark = pytest.mark.minutes(3)   # CI order: tests/conftest.py
+
 jax.config.update("jax_enable_x64", True)
 
 AIRSPEEDS = (19.0, 21.0, 23.0, 25.5)

@@ -23,6 +23,8 @@ from ude_fit.training.optimise import minimize
 
 import jax  # noqa: E402  (after the imports above, before any array)
 
+pytestmark = pytest.mark.minutes(4)   # CI order: tests/conftest.py
+
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 AIRSPEEDS = (17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0, 23.6)
@@ -493,6 +495,25 @@ def test_a_start_that_snakes_through_the_points_does_not_set_the_bar():
         False, True, False, False, False]
     # nothing credible: nothing adequate, whatever the floor and the scatter
     assert judge_starts([snake, missing], mech, opts, scatter=0.5) == [False, False]
+
+
+def test_where_the_mechanistic_model_misses_every_point_the_backbone_sets_the_bar():
+    """A mechanistic model with no orbit at any point has no error to beat; without another
+    bar the best credible start would be adequate however far from the points (a start 77 %
+    off was, on wind-tunnel data). The points' own backbone sets the bar then, and only
+    then: where the mechanistic model has an error, that is the bar."""
+    from ude_fit.analysis.adequacy import judge_starts
+
+    opts = FitOptions(system="flutter")
+    nowhere = _figures(None, [], missed=11)
+    far, near = _figures(0.77, [20.4]), _figures(0.04, [20.4])
+    assert judge_starts([far], nowhere, opts, baseline_rms=0.10) == [False]
+    assert judge_starts([far, near], nowhere, opts, baseline_rms=0.10) == [False, True]
+    assert judge_starts([far], nowhere, opts) == [True]        # no bar at all: as before
+    assert judge_starts([far, near], _figures(0.9, [20.3]), opts, baseline_rms=0.10) == [
+        False, True]                       # within twice the best, below the mechanistic 90 %
+    assert judge_starts([_figures(0.3, [20.4])], _figures(0.9, [20.3]), opts,
+                        baseline_rms=0.10) == [True]
 
 
 def test_energy_shape_penalty_sees_only_work_convex_in_amplitude_squared():

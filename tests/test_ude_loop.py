@@ -27,6 +27,8 @@ import jax  # noqa: E402  (after the imports above, before any array)
 
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
+pytestmark = pytest.mark.minutes(9)   # CI order: tests/conftest.py
+
 SIGMA = 0.02
 HELD = 0.2       # a point the board could not hold on its orbit is not logged (as in CBC)
 K_ALPHA = FlutterParams().k_alpha      # the spring a freeplay gap takes out

@@ -144,6 +144,10 @@ class FitResult:
                        "train_seconds": float(sum(s.train_seconds or 0.0 for s in self.starts)),
                        "kept": None if best is None else best.start,
                        "criterion": {"missed": 0, "below_mechanistic": True,
+                                     # the bar where the mechanistic model misses every point
+                                     "below_backbone": (
+                                         self.mechanistic_metrics.summary.branch_rms is None
+                                         and _baseline_rms(self.backbone) is not None),
                                      "factor_of_best": opts.adequacy_factor,
                                      "floor": opts.adequacy_floor,
                                      "data_scatter": self.data["scatter"],
@@ -177,6 +181,14 @@ def backbone_metrics(ds: OrbitDataset) -> BackboneFit | None:
         return None
     return BackboneFit(bb, bb.metrics(ds.parameters(), ds.amplitudes(),
                                       [o.stable for o in ds.orbits]))
+
+
+def _baseline_rms(backbone: BackboneFit | None) -> float | None:
+    """The backbone's branch error, where it has an orbit at every point: the bar a start
+    must pass when the mechanistic model sets none."""
+    if backbone is None or backbone.errors.summary.missed:
+        return None
+    return backbone.errors.summary.branch_rms
 
 
 def _train_starts(mech_model, data: TrainingData, opts: FitOptions, keys, say,
@@ -359,9 +371,10 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
 
     scatter = data_scatter(ds)
     fold_needed = needs_fold(ds)
+    backbone = backbone_metrics(ds)
     ok = [s for s in starts if s.completed]
     for s, a in zip(starts, judge_starts([s.metrics for s in starts], mech_m, opts, scatter,
-                                         fold_needed)):
+                                         fold_needed, _baseline_rms(backbone))):
         s.adequate = a
     best = None
     if ok:
@@ -380,4 +393,4 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                                "ude": None if best is None else best.diagram},
                      mechanistic_metrics=mech_m, scales=scales, ranges=ranges, starts=starts,
                      kept=best, data=data_record, fold_required=fold_needed,
-                     backbone=backbone_metrics(ds), seconds=time.perf_counter() - t_start)
+                     backbone=backbone, seconds=time.perf_counter() - t_start)

@@ -36,10 +36,12 @@ def data_scatter(ds: OrbitDataset) -> float:
     return float(np.sqrt(np.sum(np.square(res)) / dof) / a_max) if dof > 0 else 0.0
 
 
-def _credible(m: ModelMetrics | None, mech_m: ModelMetrics, fold_required: bool = False) -> bool:
+def _credible(m: ModelMetrics | None, mech_m: ModelMetrics, fold_required: bool = False,
+              baseline_rms: float | None = None) -> bool:
     """Every check of adequacy but the comparison with the other starts: nothing missed,
     no more folds than allowed (and one at least where the data needs one), below the
-    mechanistic model's error (at every frequency)."""
+    mechanistic model's error (at every frequency); where the mechanistic model has no
+    error to beat (it misses every point), below ``baseline_rms`` (the data's backbone)."""
     if m is None or m.summary.branch_rms is None or m.summary.missed > 0:
         return False
     # stable and unstable orbits of a self-excited system meet at a fold; a diagram whose
@@ -51,8 +53,12 @@ def _credible(m: ModelMetrics | None, mech_m: ModelMetrics, fold_required: bool 
     # family (a network that snakes through the points is not a model of them)
     if m.fold_count > mech_m.fold_count + mech_m.families:
         return False
-    mech_rms = mech_m.summary.branch_rms
-    if mech_rms is not None and m.summary.branch_rms >= mech_rms:
+    # a model that misses every point sets no bar, and without one the best credible start
+    # would be adequate however far it lies from the points: the simplest model of the
+    # points themselves sets it then
+    bar = mech_m.summary.branch_rms
+    bar = baseline_rms if bar is None else bar
+    if bar is not None and m.summary.branch_rms >= bar:
         return False
     # oscillator: better than the mechanistic model at every frequency, not just overall
     mine = m.per_frequency or {}
@@ -64,23 +70,25 @@ def _credible(m: ModelMetrics | None, mech_m: ModelMetrics, fold_required: bool 
 
 
 def _is_adequate(m, best_rms, mech_m, opts, scatter: float = 0.0,
-                 fold_required: bool = False) -> bool:
+                 fold_required: bool = False, baseline_rms: float | None = None) -> bool:
     """Credible, and within ``adequacy_factor`` of the best credible start's error (or
     under the floor, or under the data's own scatter)."""
-    return _credible(m, mech_m, fold_required) and m.summary.branch_rms <= max(
+    return _credible(m, mech_m, fold_required, baseline_rms) and m.summary.branch_rms <= max(
         opts.adequacy_factor * best_rms, opts.adequacy_floor, scatter)
 
 
 def judge_starts(start_metrics: list[ModelMetrics | None], mech_m: ModelMetrics,
                  opts: FitOptions, scatter: float = 0.0,
-                 fold_required: bool = False) -> list[bool]:
+                 fold_required: bool = False,
+                 baseline_rms: float | None = None) -> list[bool]:
     """Adequacy of each start (None for a dropped one). The reference for "within a factor
     of the best" is the best start that is itself credible: one that snakes through every
     point (folds the data does not show) fits closer than a model of the physics should,
     and must not set the bar."""
     best_rms = min((m.summary.branch_rms for m in start_metrics
-                    if _credible(m, mech_m, fold_required)), default=np.inf)
-    return [m is not None and _is_adequate(m, best_rms, mech_m, opts, scatter, fold_required)
+                    if _credible(m, mech_m, fold_required, baseline_rms)), default=np.inf)
+    return [m is not None and _is_adequate(m, best_rms, mech_m, opts, scatter, fold_required,
+                                           baseline_rms)
             for m in start_metrics]
 
 

@@ -117,7 +117,12 @@ def render(metrics: dict, figures: dict) -> str:
           f"{st['adequate']} of {st['requested']} starts adequate ({st['completed']} completed, "
           f"{len(st['dropped'])} dropped). A start is adequate when it misses no measured point "
           "(an orbit with the measured stability at every measured parameter), its branch RMS "
-          f"error is below the mechanistic model's, and within "
+          + ("error is below the backbone's (the mechanistic model has no orbit at any "
+             "point, so no error to beat; the backbone's is "
+             f"{pct((metrics['backbone'] or {}).get('branch_rms'))}), "
+             if st["criterion"].get("below_backbone") else
+             "error is below the mechanistic model's, ")
+          + f"and within "
           f"{st['criterion']['factor_of_best']} times that of the best start passing the "
           f"other checks (or under {pct(st['criterion']['floor'])}, or under the data's own "
           f"scatter about smooth branches, {pct(st['criterion']['data_scatter'])}).",
