@@ -23,7 +23,7 @@ import numpy as np
 
 from ._precision import require_float64
 from .analysis.backbone import BackboneFit, backbone_of
-from .analysis.adequacy import data_scatter, judge_starts, needs_fold
+from .analysis.adequacy import data_scatter, error_bar, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
 from .analysis.metrics_type import ModelMetrics
 from .data.estimates import estimate_from_data
@@ -145,9 +145,9 @@ class FitResult:
                        "kept": None if best is None else best.start,
                        "criterion": {"missed": 0, "below_mechanistic": True,
                                      # the bar where the mechanistic model misses every point
-                                     "below_backbone": (
-                                         self.mechanistic_metrics.summary.branch_rms is None
-                                         and _baseline_rms(self.backbone) is not None),
+                                     "below_backbone": error_bar(
+                                         self.mechanistic_metrics,
+                                         _baseline_rms(self.backbone))[1] == "backbone",
                                      "factor_of_best": opts.adequacy_factor,
                                      "floor": opts.adequacy_floor,
                                      "data_scatter": self.data["scatter"],

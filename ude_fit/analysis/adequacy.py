@@ -36,6 +36,19 @@ def data_scatter(ds: OrbitDataset) -> float:
     return float(np.sqrt(np.sum(np.square(res)) / dof) / a_max) if dof > 0 else 0.0
 
 
+def error_bar(mech_m: ModelMetrics, baseline_rms: float | None = None
+              ) -> tuple[float | None, str | None]:
+    """The branch error a credible start must be below, and which model sets it: the
+    mechanistic model's; where that model misses every point (no error to beat, and
+    without a bar the best credible start would be adequate however far it lies from the
+    points), ``baseline_rms``, the points' own backbone's; else none."""
+    if mech_m.summary.branch_rms is not None:
+        return mech_m.summary.branch_rms, "mechanistic"
+    if baseline_rms is not None:
+        return baseline_rms, "backbone"
+    return None, None
+
+
 def _credible(m: ModelMetrics | None, mech_m: ModelMetrics, fold_required: bool = False,
               baseline_rms: float | None = None) -> bool:
     """Every check of adequacy but the comparison with the other starts: nothing missed,
@@ -53,11 +66,7 @@ def _credible(m: ModelMetrics | None, mech_m: ModelMetrics, fold_required: bool 
     # family (a network that snakes through the points is not a model of them)
     if m.fold_count > mech_m.fold_count + mech_m.families:
         return False
-    # a model that misses every point sets no bar, and without one the best credible start
-    # would be adequate however far it lies from the points: the simplest model of the
-    # points themselves sets it then
-    bar = mech_m.summary.branch_rms
-    bar = baseline_rms if bar is None else bar
+    bar, _ = error_bar(mech_m, baseline_rms)
     if bar is not None and m.summary.branch_rms >= bar:
         return False
     # oscillator: better than the mechanistic model at every frequency, not just overall
