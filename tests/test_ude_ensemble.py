@@ -70,3 +70,23 @@ def test_a_start_whose_loss_goes_non_finite_is_dropped_and_the_others_go_on():
     with pytest.raises(Diverged, match="bowl: loss is not finite at Adam step 25"):
         minimize(_bowl, {"x": starts[0]}, (centre,), adam_steps=50, lbfgs_steps=20, lr=0.1,
                  stage="bowl")
+
+
+def test_lbfgs_lanes_stop_at_their_best_or_fail_each_on_its_own():
+    """L-BFGS runs lane by lane: lanes whose loss turns non-finite after a finite step
+    stop at their best point, one that starts non-finite fails without touching them;
+    each lane equals its single run."""
+    centre = jnp.array([8.0, 0.0])              # beyond the NaN wall at x[0] = 5
+    starts = jnp.array([[0.0, 0.0], [6.0, 0.0], [1.0, 1.0]])
+    params, losses, failed = descend(_bowl, {"x": starts}, (centre,), lanes=3,
+                                     adam_steps=0, lbfgs_steps=20, lr=0.1, stage="wall")
+    assert failed == {1: "wall: loss is not finite at L-BFGS step 1"}
+    assert np.isnan(losses[1])
+    for k in (0, 2):
+        assert np.isfinite(losses[k]) and float(params["x"][k][0]) <= 5.0
+        assert losses[k] < float(_bowl({"x": starts[k]}, centre))
+        alone, loss = minimize(_bowl, {"x": starts[k]}, (centre,), adam_steps=0,
+                               lbfgs_steps=20, lr=0.1, stage="wall")
+        np.testing.assert_allclose(np.asarray(params["x"][k]), np.asarray(alone["x"]),
+                                   rtol=1e-12, atol=1e-12)
+        assert losses[k] == pytest.approx(loss, rel=1e-12)

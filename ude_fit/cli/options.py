@@ -86,9 +86,10 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--starts", type=positive_int("--starts"), default=5,
                    help="random starts; the best adequate one is kept (default 5)")
     p.add_argument("--starts-together", action="store_true",
-                   help="train the network's starts as one vectorised ensemble (each start "
-                   "the same as alone; on a 2-core CPU measured 2.6x slower than one after "
-                   "another, see docs/benchmarks.md)")
+                   help="train the network's starts together: Adam vmapped over the starts, "
+                   "L-BFGS one start at a time (each start the same as alone; 16 starts "
+                   "measured 1.3x faster than one after another on 2 cores, see "
+                   "docs/benchmarks.md)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--width", type=positive_int("--width"), default=12,
                    help="hidden units per layer of the NN (default 12)")

@@ -2,14 +2,17 @@
 (params, *args). Compiled steps are shared by every call with the same loss and
 argument structure.
 
-:func:`minimize` optimises one set of parameters; :func:`minimize_ensemble` optimises
-N independent sets at once (every leaf with a leading axis of N, one *lane* per random
-start): each step is the single step vmapped over the lanes, optimiser state included,
-so on a CPU the N starts cost little more than one (the integrations are long chains of
-small operations whose cost is per operation, not per number). Lanes never interact: a
-lane's result is the single run's on its parameters, to rounding. A lane whose loss goes
-non-finite is dropped (its reason recorded) and from then on carries a copy of a live
-lane, so no NaN runs through the batch and slows its line searches.
+:func:`minimize` optimises one set of parameters; :func:`descend` with ``lanes`` optimises
+N independent sets (every leaf with a leading axis of N, one *lane* per random start).
+Adam runs the lanes together, its step vmapped over them, optimiser state included: on a
+CPU the integrations are long chains of small operations whose cost is per operation,
+not per number, so a batch of lanes costs far less than its lanes one by one. L-BFGS
+then runs each lane alone with the single run's compiled step: vmapped, its line search
+runs as long as its slowest lane and executes both sides of its branches (100 steps of 4
+lanes cost as much as 15 single runs). Lanes never interact: a lane's result is the
+single run's on its parameters, to rounding. A lane whose loss goes non-finite in Adam is
+dropped (its reason recorded) and from then on carries a copy of a live lane, so no NaN
+runs through the batch.
 """
 
 from __future__ import annotations
@@ -69,9 +72,8 @@ def _over_lanes(step):
     return batched
 
 
-# (one set of parameters, a batch of lanes)
-_STEPS = {"adam": (eqx.filter_jit(_adam_scan), _over_lanes(_adam_scan)),
-          "lbfgs": (eqx.filter_jit(_lbfgs_update), _over_lanes(_lbfgs_update))}
+_ADAM_STEPS = (eqx.filter_jit(_adam_scan), _over_lanes(_adam_scan))   # (one set, lanes)
+_LBFGS_STEP = eqx.filter_jit(_lbfgs_update)                            # one set at a time
 
 
 def _strong_types(tree):
@@ -82,22 +84,49 @@ def _strong_types(tree):
         lambda x: jnp.array(x, dtype=x.dtype) if isinstance(x, jax.Array) else x, tree)
 
 
-def _select(mask, new, old):
-    """Per lane, ``new`` where ``mask`` else ``old`` (mask 0-d for a single run)."""
-    mask = jnp.asarray(mask)
-
-    def pick(a, b):
-        if not eqx.is_array(a):
-            return a
-        return jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - mask.ndim)), a, b)
-    return jax.tree_util.tree_map(pick, new, old)
-
-
 def _refill(live: np.ndarray, *trees):
     """The trees with every lane that is not ``live`` replaced by a copy of a live one."""
     idx = np.where(live, np.arange(live.size), int(np.argmax(live)))
     return tuple(jax.tree_util.tree_map(lambda x: x[idx] if eqx.is_array(x) else x, t)
                  for t in trees)
+
+
+def lane_of(tree, i: int):
+    """Lane i of a tree of stacked lanes."""
+    return jax.tree_util.tree_map(lambda x: x[i] if eqx.is_array(x) else x, tree)
+
+
+def _put_lanes(tree, lanes: list):
+    """``tree`` with lane i replaced by each (i, one-lane tree) in ``lanes``."""
+    idx = np.array([i for i, _ in lanes])
+
+    def put(x, *ones):
+        if not eqx.is_array(x):
+            return x
+        return x.at[idx].set(jnp.stack(ones))
+    return jax.tree_util.tree_map(put, tree, *(one for _, one in lanes))
+
+
+def _lbfgs_run(loss, params, args, steps: int, on_step):
+    """L-BFGS on one set of parameters. Returns (params, loss, reason): reason is None,
+    or why it failed (the loss not finite at its first step). A loss that goes non-finite
+    after a finite step stops the run at its best point instead."""
+    opt = _lbfgs()
+    state = _strong_types(opt.init(params))
+    best_val, best = np.inf, params
+    for k in range(1, steps + 1):
+        new, state, v = _LBFGS_STEP(params, state, loss, args, opt)
+        v = float(v)                                  # the loss at ``params``
+        if not np.isfinite(v):
+            if np.isfinite(best_val):
+                return best, best_val, None
+            return params, np.nan, f"loss is not finite at L-BFGS step {k}"
+        if v < best_val:
+            best_val, best = v, params
+        params = new
+        if k % 10 == 0 or k == steps:
+            on_step(k, v)
+    return params, v, None
 
 
 def descend(loss, params, args, *, lanes: int | None, adam_steps: int, lbfgs_steps: int,
@@ -112,7 +141,7 @@ def descend(loss, params, args, *, lanes: int | None, adam_steps: int, lbfgs_ste
     failures including this stage's. A lane fails when its loss is not finite in Adam or
     at the first L-BFGS step; later in L-BFGS it stops at its best point instead."""
     n = lanes or 1
-    which = 0 if lanes is None else 1          # index into _STEPS' pairs
+    which = 0 if lanes is None else 1          # index into _ADAM_STEPS
     failed = dict(failed or {})
     live = np.array([i not in failed for i in range(n)])
     vals = np.full(n, np.nan)
@@ -135,7 +164,7 @@ def descend(loss, params, args, *, lanes: int | None, adam_steps: int, lbfgs_ste
         state = (opt.init(params) if lanes is None
                  else eqx.filter_vmap(opt.init)(params))
         for done in range(_ADAM_CHUNK, adam_steps + _ADAM_CHUNK, _ADAM_CHUNK):
-            params, state, v = _STEPS["adam"][which](params, state, loss, args, opt)
+            params, state, v = _ADAM_STEPS[which](params, state, loss, args, opt)
             v = np.atleast_1d(np.asarray(v, float))
             bad = live & ~np.isfinite(v)
             lose(bad, f"{stage}: loss is not finite at Adam step {done}")
@@ -147,35 +176,19 @@ def descend(loss, params, args, *, lanes: int | None, adam_steps: int, lbfgs_ste
                 params, state = _refill(live, params, state)
             report("adam", min(done, adam_steps), adam_steps, live)
     if lbfgs_steps > 0 and live.any():
-        opt = _lbfgs()
-        state = _strong_types(opt.init(params) if lanes is None
-                              else eqx.filter_vmap(opt.init)(params))
-        best_val, best = np.full(n, np.inf), params
-        running = live.copy()           # lanes still stepping
-        stopped = np.zeros(n, bool)     # lanes that went non-finite after a finite step
-        for k in range(1, lbfgs_steps + 1):
-            new, state, v = _STEPS["lbfgs"][which](params, state, loss, args, opt)
-            v = np.atleast_1d(np.asarray(v, float))   # the loss at ``params``
-            bad = running & ~np.isfinite(v)
-            # a lane that had a finite step stops at its best; one that never had fails
-            stopped |= bad & np.isfinite(best_val)
-            lose(bad & ~np.isfinite(best_val),
-                 f"{stage}: loss is not finite at L-BFGS step {k}")
-            running &= ~bad
-            better = running & (v < best_val)
-            best_val = np.where(better, v, best_val)
-            best = _select(better if lanes is not None else bool(better[0]), params, best)
-            vals[running] = v[running]
-            params = new
-            if not running.any():
-                break
-            if bad.any():
-                params, state = _refill(running, params, state)
-            if k % 10 == 0 or k == lbfgs_steps:
-                report("lbfgs", k, lbfgs_steps, running)
-        if stopped.any():
-            params = _select(stopped if lanes is not None else True, best, params)
-            vals[stopped] = best_val[stopped]
+        # one lane at a time, with the single run's compiled step (module docstring)
+        done = []
+        for i in (np.flatnonzero(live) if lanes is not None else [0]):
+            one = params if lanes is None else lane_of(params, int(i))
+
+            def on_step(k, v, i=i):
+                vals[i] = v
+                report("lbfgs", k, lbfgs_steps, np.arange(n) == i)
+            one, vals[i], reason = _lbfgs_run(loss, one, args, lbfgs_steps, on_step)
+            if reason is not None:
+                failed.setdefault(int(i), f"{stage}: {reason}")
+            done.append((int(i), one))
+        params = done[0][1] if lanes is None else _put_lanes(params, done)
     vals[list(failed)] = np.nan
     return params, vals, failed
 

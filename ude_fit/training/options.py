@@ -133,9 +133,9 @@ class FitOptions:
     approximator: str = "nn"
     training: str = "periodic"
     starts: int = 5
-    # the NN starts trained as one vectorised ensemble (training/optimise.py): the same
-    # result per start, but on a 2-core CPU slower than one after another (the batched
-    # line search runs as long as its slowest start; benchmarks/ude_benchmark.py)
+    # the NN starts trained together (training/optimise.py: Adam vmapped, L-BFGS one start
+    # at a time): the same result per start; on 2 cores 16 starts train 1.3x faster than
+    # one after another (benchmarks/ude_benchmark.py), not the tenfold a GPU would give
     starts_together: bool = False
     seed: int = 0
     samples: int = 32                 # samples per period of each averaged orbit

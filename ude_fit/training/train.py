@@ -33,7 +33,7 @@ from ..models.corrections import (MLPCorrection, PolynomialParamCorrection,
 from ..models.flow import diffrax_samples, rk4_orbit
 from ..models.ude import UDE
 from .identify import TrainingData, residual_forces
-from .optimise import Diverged, descend, minimize
+from .optimise import Diverged, descend, lane_of, minimize
 from .options import TrainConfig
 from .penalties import penalty_sum, regularity_points
 
@@ -184,10 +184,6 @@ def _stack(trees):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
 
 
-def _lane(tree, i: int):
-    return jax.tree_util.tree_map(lambda x: x[i], tree)
-
-
 def train_ude(model: UDE, data: TrainingData, *, key, cfg: TrainConfig, training: str,
               progress=None) -> tuple[UDE, dict]:
     """Fit a fresh MLP correction on top of ``model.mech``; returns (UDE, info); raises
@@ -249,7 +245,7 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
         if i in failed:
             out.append(Diverged(failed[i]))
             continue
-        corr = _lane(params["corr"], i) if ensemble else params["corr"]
+        corr = lane_of(params["corr"], i) if ensemble else params["corr"]
         out.append((UDE(mech, eqx.combine(corr, static)),
                     {"training": training, "equation_loss": float(eq_loss[i]),
                      "final_loss": float(loss[i])}))
