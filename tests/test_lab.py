@@ -198,6 +198,9 @@ def _pid_alive(pid: int) -> bool:
     return not (stat.exists() and stat.read_text().split(")")[-1].split()[0] == "Z")
 
 
+# the whole chain twice over (about 6 minutes on 2 cores): the suite's 600 s limit would
+# catch a slow machine, not a hang
+@pytest.mark.timeout(1500)
 def test_demo_interrupted_mid_campaign_then_resumed(tmp_path, small_campaign, truth):
     run = tmp_path / "run"
     cmd = _argv(["cbc-demo", "--campaign", str(small_campaign), "--out", str(run),
