@@ -33,6 +33,8 @@ NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory"
             "--weight-decay", "6.5", "--param-scale", "2", "--param-dependence", "polynomial",
             "--param-degree", "3", "--reference-hopf", "24.1", "--reference-fold", "20.4",
             "--rest-free", "--starts-together"]
+# the amplitude form of the correction (no network options with it)
+FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 # fit options the pipeline refuses (tests/test_ude_control_input.py checks the refusal)
 FIT_ONLY_FLAGS = ["--control-input", "--control-gain", "2.5"]
@@ -43,7 +45,7 @@ def _fit_dests() -> set[str]:
     return {a.dest for a in sub.choices["fit"]._actions} - {"help", "out", "quiet"}
 
 
-@pytest.mark.parametrize("flags", [NN_FLAGS, GP_FLAGS])
+@pytest.mark.parametrize("flags", [NN_FLAGS, FORM_FLAGS, GP_FLAGS])
 def test_pipeline_builds_the_options_fit_builds(flags):
     parser = build_parser()
     common = ["data.h5", "--system", "flutter", *flags, "--out", "o"]
@@ -58,7 +60,7 @@ def test_every_fit_flag_is_set_by_the_test_and_taken_by_the_pipeline():
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     pipe = {a.dest for a in sub.choices["pipeline"]._actions}
     assert _fit_dests() <= pipe
-    flags = {f.lstrip("-").replace("-", "_") for f in NN_FLAGS + GP_FLAGS + FIT_ONLY_FLAGS
+    flags = {f.lstrip("-").replace("-", "_") for f in NN_FLAGS + FORM_FLAGS + GP_FLAGS + FIT_ONLY_FLAGS
              if f.startswith("--")}
     assert _fit_dests() - {"data", "system", "stability"} == flags
 

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .data.orbit import DataError
+from .models.amplitude import AmplitudeCorrection, SizeBasis
 from .models.corrections import (MLPCorrection, PolynomialParamCorrection,
                                  RestFreeCorrection, Scaling)
 from .models.mechanistic import SYSTEMS, parameters_of
@@ -54,6 +55,9 @@ def _correction_header(c) -> dict | None:
         return {"kind": "mlp-polynomial", "n_in": int(c.mlp.in_size) + 1,
                 "n_out": int(c.mlp.out_size) // (c.degree + 1), "degree": int(c.degree),
                 "width": int(c.mlp.width_size), "depth": int(c.mlp.depth)}
+    if isinstance(c, AmplitudeCorrection):
+        return {"kind": "amplitude", "n_dof": int(c.n_dof),
+                "n_in": int(c.scaling.z_mean.shape[0]), "knots": int(c.basis.knots.shape[0])}
     if isinstance(c, GPCorrection):
         return {"kind": "gp", "N": int(c.Z.shape[0]), "d": int(c.Z.shape[1]),
                 "m": int(c.alpha.shape[1])}
@@ -74,6 +78,11 @@ def _skeleton_correction(h: dict | None):
         return PolynomialParamCorrection(h["n_in"], h["n_out"], sc, degree=h["degree"],
                                          width=h["width"], depth=h["depth"],
                                          key=jax.random.PRNGKey(0))
+    if h["kind"] == "amplitude":
+        n, k = h["n_dof"], h["knots"]
+        sc = Scaling(jnp.zeros(h["n_in"]), jnp.ones(h["n_in"]), jnp.ones(n))
+        return AmplitudeCorrection(n, sc, SizeBasis(jnp.zeros(k), jnp.asarray(1.0)),
+                                   key=jax.random.PRNGKey(0))
     if h["kind"] == "gp":
         N, d, m = h["N"], h["d"], h["m"]
         z = lambda *s: jnp.zeros(s)

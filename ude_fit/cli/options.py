@@ -115,6 +115,11 @@ def add_fit_arguments(p) -> None:
                    "it cannot move the equilibrium or its linearisation; explicit linear "
                    "terms on the displacements and velocities, affine in the airspeed, carry "
                    "the linear change (where the Hopf point lies)")
+    p.add_argument("--correction-form", default="network", choices=("network", "amplitude"),
+                   help="the correction's form: a neural network of the states and the "
+                   "parameter (default), or (aerofoil) linear terms affine in the airspeed "
+                   "plus a damping and a stiffness of the oscillation's size, convex in it: "
+                   "one Hopf point and at most one fold by construction")
     p.add_argument("--control-input", action="store_true",
                    help="aerofoil: the recorded holding control as a known force on heave, "
                    "so a point held with some control is fitted as an orbit of the "
@@ -155,4 +160,5 @@ def fit_options(args):
         train=TrainConfig(width=args.width, depth=args.depth, param_scale=args.param_scale,
                           param_dependence=args.param_dependence,
                           param_degree=args.param_degree, rest_free=args.rest_free,
+                          form=args.correction_form,
                           penalties=tuple(p for p in penalties if p.weight)))

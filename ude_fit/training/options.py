@@ -50,6 +50,10 @@ class TrainConfig:
     # the network cannot move the equilibrium at rest or its linearisation; explicit damping
     # terms carry the linear change (RestFreeCorrection; aerofoil only)
     rest_free: bool = False
+    # "network": a neural network of the states and the parameter; "amplitude": linear
+    # terms affine in the parameter plus a damping and a stiffness of the oscillation's size
+    # (models.amplitude; aerofoil only): at most one fold by construction
+    form: str = "network"
     penalties: tuple[Penalty, ...] = ()
 
     def __post_init__(self):
@@ -72,6 +76,11 @@ class TrainConfig:
         if self.param_dependence not in PARAM_DEPENDENCE:
             raise ValueError(f"param_dependence must be input or polynomial, not "
                              f"{self.param_dependence!r}")
+        if self.form not in FORMS:
+            raise ValueError(f"form must be {' or '.join(FORMS)}, not {self.form!r}")
+        if self.form == "amplitude" and (self.rest_free or self.param_dependence != "input"):
+            raise ValueError("--correction-form amplitude has its own linear terms and no "
+                             "network: not with --rest-free or --param-dependence polynomial")
         if not isinstance(self.rest_free, bool):
             raise ValueError(f"rest_free must be True or False, not {self.rest_free!r}")
         object.__setattr__(self, "penalties", tuple(self.penalties))
@@ -113,6 +122,7 @@ def _check_int(name: str, v, least: int) -> None:
 
 
 PARAM_DEPENDENCE = ("input", "polynomial")
+FORMS = ("network", "amplitude")
 
 # Per-system defaults. The forced oscillator's orbits are smooth enough at 64 RK4 steps per
 # period (2 per sample; amplitude within 1e-5 of the converged orbit up to 10 mm), which
@@ -196,6 +206,9 @@ class FitOptions:
         if not system_kind(self.system).autonomous and self.train.rest_free:
             raise ValueError("--rest-free applies to --system flutter only (a forced "
                              "system has no equilibrium at rest)")
+        if not system_kind(self.system).autonomous and self.train.form == "amplitude":
+            raise ValueError("--correction-form amplitude applies to --system flutter only "
+                             "(a self-excited system's orbit sizes)")
         if not isinstance(self.control_input, bool):
             raise ValueError(f"control_input must be True or False, not {self.control_input!r}")
         if self.control_input and not system_kind(self.system).autonomous:
@@ -220,6 +233,8 @@ class FitOptions:
                 nn_only.append("--rest-free")
             if self.train.param_scale != 1.0:
                 nn_only.append("--param-scale")
+            if self.train.form != "network":
+                nn_only.append(f"--correction-form {self.train.form}")
             if self.train.param_dependence != "input":
                 nn_only.append("--param-dependence polynomial")
             if nn_only:

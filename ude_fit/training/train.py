@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._precision import require_float64
+from ..models.amplitude import SizeBasis, amplitude_correction
 from ..models.corrections import (MLPCorrection, PolynomialParamCorrection,
                                   RestFreeCorrection, Scaling, feature_scaling)
 from ..models.flow import diffrax_samples, rk4_orbit
@@ -39,10 +40,12 @@ from .penalties import penalty_sum, regularity_points
 
 
 def _trainable_spec(correction):
-    """Every array of the correction is trained but its (fixed) input/output scaling."""
+    """Every array of the correction is trained but its fixed parts (input/output scaling,
+    an amplitude form's knots)."""
+    fixed = (Scaling, SizeBasis)
     return jax.tree_util.tree_map(
-        lambda x: False if isinstance(x, Scaling) else eqx.is_inexact_array(x), correction,
-        is_leaf=lambda x: isinstance(x, Scaling))
+        lambda x: False if isinstance(x, fixed) else eqx.is_inexact_array(x), correction,
+        is_leaf=lambda x: isinstance(x, fixed))
 
 
 def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig):
@@ -50,6 +53,9 @@ def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig):
     sc = feature_scaling(Z, R)
     if cfg.param_scale != 1.0:
         sc = eqx.tree_at(lambda s: s.z_scale, sc, sc.z_scale.at[-1].multiply(cfg.param_scale))
+    if cfg.form == "amplitude":
+        return amplitude_correction(Z, model.mech.n_dof, sc, key=key,
+                                    init_scale=cfg.init_scale)
     if cfg.param_dependence == "polynomial":
         inner = PolynomialParamCorrection(Z.shape[1], R.shape[1], sc, degree=cfg.param_degree,
                                           width=cfg.width, depth=cfg.depth, key=key,

@@ -1,0 +1,108 @@
+"""The amplitude form of the correction (ude_fit.models.amplitude, ``--correction-form
+amplitude``): linear terms affine in the airspeed plus a damping convex in the orbit's size.
+Checked against what the form promises by construction: the linearisation at rest is the
+explicit linear terms, the damping coefficient is convex and vanishes at rest, the damping
+force never feeds energy in where its coefficient is positive, and a traced diagram has one
+Hopf point and at most one fold whatever the weights."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ude_fit.analysis.continuation import trace_flutter
+from ude_fit.analysis.diagram_type import MAIN
+from ude_fit.analysis.metrics import locations
+from ude_fit.model_file import load_model, save_model
+from ude_fit.models.amplitude import AmplitudeCorrection, SizeBasis
+from ude_fit.models.corrections import Scaling
+from ude_fit.models.mechanistic import Drive, FlutterQS
+from ude_fit.models.ude import UDE
+from ude_fit.training.options import FitOptions, TrainConfig
+
+jax.config.update("jax_enable_x64", True)
+
+# state spreads of the aerofoil's orbits (m, rad, m/s, rad/s; velocities = 2 pi 2.4 Hz times
+# the displacements), airspeed mean and spread, force RMS (N, N m)
+SCALING = Scaling(jnp.array([0.0, 0.0, 0.0, 0.0, 22.0]),
+                  jnp.array([0.03, 0.05, 0.45, 0.75, 2.0]), jnp.array([20.0, 1.0]))
+SCALES = np.array([0.03, 0.05, 0.45, 0.75])
+
+
+def _correction(key=0, size=1.0):
+    return AmplitudeCorrection(2, SCALING, SizeBasis.spanning(np.array([0.0, 2.0]), 6),
+                               key=jax.random.PRNGKey(key), init_scale=size)
+
+
+def test_value_and_slope_at_rest_are_the_linear_terms_alone():
+    c = _correction(size=3.0)
+    for V in (15.0, 22.0, 28.0):
+        assert np.allclose(c(jnp.array([0.0, 0.0, 0.0, 0.0, V])), 0.0, atol=1e-12)
+        J = jax.jacfwd(lambda y: c(jnp.concatenate([y, jnp.array([V])])))(jnp.zeros(4))
+        p = (V - 22.0) / 2.0
+        want = (np.asarray(SCALING.out_scale)[:, None]
+                * (np.asarray(c.linear[0]) + p * np.asarray(c.linear[1]))
+                / np.asarray(SCALING.z_scale[:4])[None, :])
+        assert np.allclose(J, want, atol=1e-9)
+        assert np.allclose(c.linear_matrix(V), want, atol=1e-12)
+
+
+@pytest.mark.parametrize("key", [0, 1, 2])
+def test_the_damping_coefficient_is_convex_and_zero_at_rest(key):
+    c = _correction(key, size=3.0)
+    e = np.linspace(0.0, 3.0, 301)
+    phi = np.array([float(c.phi(x)) for x in e])
+    assert phi[0] == pytest.approx(0.0, abs=1e-12)
+    assert np.min(np.diff(phi, 2)) > -1e-10
+    # not a straight line: the ramps bend it (so convexity is a property, not a given)
+    assert np.max(np.diff(phi, 2)) > 1e-8
+
+
+def test_the_damping_force_does_no_positive_work_where_its_coefficient_is_positive():
+    c = _correction(3, size=2.0)
+    c = eqx.tree_at(lambda m: m.linear, c, jnp.zeros_like(c.linear))   # the damping alone
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        y = rng.normal(size=4) * SCALES
+        U = np.asarray(c(jnp.concatenate([jnp.asarray(y), jnp.array([22.0])])))
+        e = float(c.size(jnp.asarray(y) / SCALING.z_scale[:4]))
+        power = float(U @ y[2:])
+        assert power * np.sign(float(c.phi(e))) <= 1e-12
+
+
+@pytest.mark.parametrize("key", [0, 1])
+def test_a_traced_diagram_has_one_hopf_point_and_one_fold(key):
+    """Random weights, shifted towards a subcritical picture (the damping first falls,
+    then rises with the orbit's size, as with phi' < 0 at rest): the branch from the Hopf
+    point turns back once, below the Hopf airspeed, and never again up to 0.2 m of heave."""
+    c = _correction(key, size=0.5)
+    c = eqx.tree_at(lambda m: (m.phi_lin, m.phi_raw, m.linear), c,
+                    (jnp.asarray(-2.0), c.phi_raw + 4.0, 0.05 * c.linear))
+    model = UDE(FlutterQS.nominal(k_alpha2=0.0, k_alpha3=0.0), c)
+    b = trace_flutter(model, v_range=(10.0, 40.0), amp_max=0.2, scales=SCALES)
+    loc = locations({MAIN: b})
+    assert loc["hopf"] is not None
+    assert len(loc["folds"]) == 1 and loc["folds"][0] < loc["hopf"] - 1.0
+
+
+def test_model_file_round_trip(tmp_path):
+    model = UDE(FlutterQS.nominal(), _correction(4, size=1.0))
+    save_model(tmp_path / "m.eqx", model)
+    back, header = load_model(tmp_path / "m.eqx")
+    assert header["correction"]["kind"] == "amplitude"
+    y = jnp.array([0.02, 0.03, 0.3, 0.5])
+    d = Drive.of(22.0)
+    assert np.allclose(back.vector_field(0.0, y, d), model.vector_field(0.0, y, d))
+
+
+def test_the_form_is_for_the_aerofoils_correction():
+    with pytest.raises(ValueError, match="--correction-form amplitude applies to --system "
+                                         "flutter"):
+        FitOptions(system="oscillator", train=TrainConfig(form="amplitude"))
+    with pytest.raises(ValueError, match="--correction-form amplitude"):
+        FitOptions(system="flutter", approximator="gp", train=TrainConfig(form="amplitude"))
+    with pytest.raises(ValueError, match="not with --rest-free"):
+        TrainConfig(form="amplitude", rest_free=True)
+    with pytest.raises(ValueError, match="form must be"):
+        TrainConfig(form="spline")

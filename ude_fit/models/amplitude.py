@@ -1,0 +1,112 @@
+"""A correction of the Hopf normal form's kind: linear terms affine in the parameter, plus a
+damping that depends on the oscillation's size alone.
+
+    U(y; p) = (L0 + L1 s_p) y  -  phi(e) C q',
+
+with ``e(y)`` the squared size of the state (each displacement and velocity over its spread
+in the data, squares averaged): near-constant along a harmonic orbit, since the velocities'
+spread is the displacements' times the orbits' frequency. ``C`` is positive semi-definite
+(learnt) and ``phi`` vanishes at rest, so the linearisation at rest is the mechanistic
+model's plus the explicit linear terms (the Hopf point is theirs).
+
+Why this form: along a closed orbit of near-constant ``e`` the damping term's work per
+cycle is ``-phi(e)`` times a positive number, so to first order in averaging the growth rate
+of an orbit of size ``e`` at airspeed V is ``g(V) - k phi(e)`` plus whatever is linear in
+``e`` (a cubic stiffness's share). ``phi`` is convex (a free linear term plus softplus ramps
+with non-negative slopes), so that growth rate is concave in ``e``: at most two orbits per
+airspeed and at most one fold (a subcritical Hopf point, its fold and the stable branch
+beyond; or a supercritical one). A free network bends its work per cycle as often as the
+points' scatter asks, and each bend is a fold the physics does not have (docs/experiments.md:
+8 to 16 folds on lee2020). An amplitude-dependent *stiffness* is left out on purpose: on a
+flutter mode it moves the growth rate through the aerodynamic coupling, in whatever shape it
+has, and with it the form had 10 folds on lee2020 (docs/experiments.md, twelfth session).
+
+``phi`` is a one-input network of a fixed form: a linear term plus softplus ramps at knots
+spread over the sizes the data holds, each ramp's slope learnt and made non-negative.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .corrections import Scaling
+
+
+class SizeBasis(eqx.Module):
+    """The fixed (untrained) part: knots and ramp width for the size ``e``."""
+    knots: jax.Array
+    width: jax.Array
+
+    @staticmethod
+    def spanning(e: np.ndarray, n_knots: int) -> "SizeBasis":
+        """``n_knots`` knots evenly over [0, the largest size in the data]."""
+        top = float(np.max(e)) if np.size(e) and np.max(e) > 0 else 1.0
+        knots = np.linspace(0.0, top, n_knots + 1)[:-1]
+        return SizeBasis(jnp.asarray(knots), jnp.asarray(top / n_knots))
+
+    def ramps(self, e):
+        """Softplus ramps at the knots, each zero at e = 0: (n_knots,)."""
+        w = self.width
+        return w * (jax.nn.softplus((e - self.knots) / w) - jax.nn.softplus(-self.knots / w))
+
+
+class AmplitudeCorrection(eqx.Module):
+    """U(y; p) = (L0 + L1 s_p) y - phi(e) C q' (module docstring), in scaled
+    units: states over their spread, forces over the residual's RMS."""
+    linear: jax.Array        # (2, n_dof, 2 n_dof): L0, L1
+    phi_lin: jax.Array       # phi's free linear slope
+    phi_raw: jax.Array       # (n_knots,) softplus -> phi's ramp slopes (>= 0)
+    c_chol: jax.Array        # (n_dof, n_dof) lower triangle: C = R R^T
+    scaling: Scaling
+    basis: SizeBasis
+    n_dof: int = eqx.field(static=True)
+
+    def __init__(self, n_dof: int, scaling: Scaling, basis: SizeBasis, *, key,
+                 init_scale: float = 1e-2):
+        n, k = n_dof, int(basis.knots.shape[0])
+        keys = jax.random.split(key, 7)
+        r = lambda i, *shape: init_scale * jax.random.normal(keys[i], shape)
+        self.linear = r(0, 2, n, 2 * n)
+        self.phi_lin = r(1)
+        self.phi_raw = r(2, k) - 4.0            # ramps start nearly flat
+        self.c_chol = jnp.eye(n) + r(5, n, n)
+        self.scaling, self.basis, self.n_dof = scaling, basis, n_dof
+
+    def size(self, y_scaled):
+        """e: the mean square of the scaled displacements and velocities."""
+        return jnp.mean(y_scaled[:2 * self.n_dof] ** 2)
+
+    def phi(self, e):
+        """The size's damping coefficient: convex in e, zero at rest."""
+        return self.phi_lin * e + jax.nn.softplus(self.phi_raw) @ self.basis.ramps(e)
+
+    def linear_matrix(self, p):
+        """The correction's Jacobian in y at rest, in force per state unit."""
+        s = self.scaling
+        ps = (p - s.z_mean[-1]) / s.z_scale[-1]
+        n = 2 * self.n_dof
+        return s.out_scale[:, None] * (self.linear[0] + self.linear[1] * ps) / s.z_scale[None, :n]
+
+    def __call__(self, z):
+        s, n = self.scaling, self.n_dof
+        y = z[:2 * n]
+        ys = y / s.z_scale[:2 * n]
+        e = self.size(ys)
+        # C acts in units where each force is its RMS and each state its spread;
+        # D_v q' is a symmetric rescaling, so C stays PSD in SI
+        d_v = jnp.sqrt(s.out_scale / s.z_scale[n:2 * n])
+        R = jnp.tril(self.c_chol)
+        damping = d_v * (R @ (R.T @ (d_v * y[n:])))
+        return self.linear_matrix(z[-1]) @ y - self.phi(e) * damping
+
+
+def amplitude_correction(Z: np.ndarray, n_dof: int, scaling: Scaling, *, key,
+                         n_knots: int = 6, init_scale: float = 1e-2) -> AmplitudeCorrection:
+    """A fresh correction whose knots span the sizes of the training samples ``Z``."""
+    ys = np.asarray(Z)[:, :2 * n_dof] / np.asarray(scaling.z_scale[:2 * n_dof])
+    e = np.mean(ys ** 2, axis=1)
+    return AmplitudeCorrection(n_dof, scaling, SizeBasis.spanning(e, n_knots), key=key,
+                               init_scale=init_scale)
