@@ -11,11 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ude_fit.analysis.continuation import trace_flutter
+from ude_fit.analysis.continuation import hopf_point, trace_flutter
 from ude_fit.analysis.diagram_type import MAIN
 from ude_fit.analysis.metrics import locations
 from ude_fit.model_file import load_model, save_model
-from ude_fit.models.amplitude import AmplitudeCorrection, SizeBasis
+from ude_fit.models.amplitude import AmplitudeCorrection, SizeBasis, pin_hopf
 from ude_fit.models.corrections import Scaling
 from ude_fit.models.mechanistic import Drive, FlutterQS
 from ude_fit.models.ude import UDE
@@ -30,19 +30,23 @@ SCALING = Scaling(jnp.array([0.0, 0.0, 0.0, 0.0, 22.0]),
 SCALES = np.array([0.03, 0.05, 0.45, 0.75])
 
 
-def _correction(key=0, size=1.0):
-    return AmplitudeCorrection(2, SCALING, SizeBasis.spanning(np.array([0.0, 2.0]), 6),
-                               key=jax.random.PRNGKey(key), init_scale=size)
+def _correction(key=0, size=1.0, linear=0.0):
+    """Random weights of scale ``size``; linear terms of scale ``linear``."""
+    c = AmplitudeCorrection(2, SCALING, SizeBasis.spanning(np.array([0.0, 2.0]), 6),
+                            key=jax.random.PRNGKey(key), init_scale=size)
+    L = linear * jax.random.normal(jax.random.PRNGKey(100 + key), (2, 2, 4))
+    return eqx.tree_at(lambda m: m.rest.matrices, c, L)
 
 
 def test_value_and_slope_at_rest_are_the_linear_terms_alone():
-    c = _correction(size=3.0)
+    c = _correction(size=3.0, linear=0.5)
+    L = np.asarray(c.rest.matrices)
     for V in (15.0, 22.0, 28.0):
         assert np.allclose(c(jnp.array([0.0, 0.0, 0.0, 0.0, V])), 0.0, atol=1e-12)
         J = jax.jacfwd(lambda y: c(jnp.concatenate([y, jnp.array([V])])))(jnp.zeros(4))
         p = (V - 22.0) / 2.0
         want = (np.asarray(SCALING.out_scale)[:, None]
-                * (np.asarray(c.linear[0]) + p * np.asarray(c.linear[1]))
+                * (L[0] + p * L[1])
                 / np.asarray(SCALING.z_scale[:4])[None, :])
         assert np.allclose(J, want, atol=1e-9)
         assert np.allclose(c.linear_matrix(V), want, atol=1e-12)
@@ -60,8 +64,7 @@ def test_the_damping_coefficient_is_convex_and_zero_at_rest(key):
 
 
 def test_the_damping_force_does_no_positive_work_where_its_coefficient_is_positive():
-    c = _correction(3, size=2.0)
-    c = eqx.tree_at(lambda m: m.linear, c, jnp.zeros_like(c.linear))   # the damping alone
+    c = _correction(3, size=2.0)        # no linear terms: the damping alone
     rng = np.random.default_rng(0)
     for _ in range(50):
         y = rng.normal(size=4) * SCALES
@@ -76,18 +79,32 @@ def test_a_traced_diagram_has_one_hopf_point_and_one_fold(key):
     """Random weights, shifted towards a subcritical picture (the damping first falls,
     then rises with the orbit's size, as with phi' < 0 at rest): the branch from the Hopf
     point turns back once, below the Hopf airspeed, and never again up to 0.2 m of heave."""
-    c = _correction(key, size=0.5)
-    c = eqx.tree_at(lambda m: (m.phi_lin, m.phi_raw, m.linear), c,
-                    (jnp.asarray(-2.0), c.phi_raw + 4.0, 0.05 * c.linear))
+    c = _correction(key, size=0.5, linear=0.025)
+    c = eqx.tree_at(lambda m: (m.phi_lin, m.phi_raw), c, (jnp.asarray(-2.0), c.phi_raw + 4.0))
     model = UDE(FlutterQS.nominal(k_alpha2=0.0, k_alpha3=0.0), c)
     b = trace_flutter(model, v_range=(10.0, 40.0), amp_max=0.2, scales=SCALES)
     loc = locations({MAIN: b})
     assert loc["hopf"] is not None
-    assert len(loc["folds"]) == 1 and loc["folds"][0] < loc["hopf"] - 1.0
+    assert len(loc["folds"]) == 1 and loc["folds"][0] < loc["hopf"]
+
+
+@pytest.mark.parametrize("v_hopf", [21.0, 27.5])
+def test_pinning_puts_the_hopf_point_where_asked(v_hopf):
+    """pin_hopf's one damping moves the equilibrium's loss of stability to the airspeed the
+    data's unstable orbits point at, as the continuation's own Hopf search finds it."""
+    model = UDE(FlutterQS.nominal(), _correction(5, size=0.5))
+    before = hopf_point(model, (10.0, 40.0))["param"]
+    pinned = pin_hopf(model, v_hopf)
+    assert abs(before - v_hopf) > 0.5                      # the test moves it
+    assert hopf_point(pinned, (10.0, 40.0))["param"] == pytest.approx(v_hopf, abs=1e-6)
+    # only the linear terms changed: the damping on each velocity, in scaled units
+    L = np.asarray(pinned.correction.rest.matrices)
+    assert np.allclose(L[1], 0.0) and np.allclose(L[0][:, :2], 0.0)
+    assert L[0][0, 2] == pytest.approx(L[0][1, 3]) and L[0][0, 3] == L[0][1, 2] == 0.0
 
 
 def test_model_file_round_trip(tmp_path):
-    model = UDE(FlutterQS.nominal(), _correction(4, size=1.0))
+    model = UDE(FlutterQS.nominal(), _correction(4, size=1.0, linear=0.1))
     save_model(tmp_path / "m.eqx", model)
     back, header = load_model(tmp_path / "m.eqx")
     assert header["correction"]["kind"] == "amplitude"

@@ -81,7 +81,7 @@ def _skeleton_correction(h: dict | None):
     if h["kind"] == "amplitude":
         n, k = h["n_dof"], h["knots"]
         sc = Scaling(jnp.zeros(h["n_in"]), jnp.ones(h["n_in"]), jnp.ones(n))
-        return AmplitudeCorrection(n, sc, SizeBasis(jnp.zeros(k), jnp.asarray(1.0)),
+        return AmplitudeCorrection(n, sc, SizeBasis(jnp.zeros(k), jnp.ones(k)),
                                    key=jax.random.PRNGKey(0))
     if h["kind"] == "gp":
         N, d, m = h["N"], h["d"], h["m"]

@@ -22,7 +22,10 @@ flutter mode it moves the growth rate through the aerodynamic coupling, in whate
 has, and with it the form had 10 folds on lee2020 (docs/experiments.md, twelfth session).
 
 ``phi`` is a one-input network of a fixed form: a linear term plus softplus ramps at knots
-spread over the sizes the data holds, each ramp's slope learnt and made non-negative.
+spread over the sizes the data holds (evenly in amplitude), each ramp's slope learnt and made
+non-negative. The linear terms are not trained (:class:`RestLinear`): :func:`pin_hopf` sets
+them from the data where the unstable orbits point at a Hopf point (trained free, they moved
+the Hopf point far from every orbit; docs/experiments.md, twelfth session).
 """
 
 from __future__ import annotations
@@ -31,32 +34,42 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.optimize import brentq
 
 from .corrections import Scaling
+from .mechanistic import Drive
 
 
 class SizeBasis(eqx.Module):
-    """The fixed (untrained) part: knots and ramp width for the size ``e``."""
+    """The fixed (untrained) part: knots and ramp widths for the size ``e``."""
     knots: jax.Array
-    width: jax.Array
+    widths: jax.Array
 
     @staticmethod
     def spanning(e: np.ndarray, n_knots: int) -> "SizeBasis":
-        """``n_knots`` knots evenly over [0, the largest size in the data]."""
+        """``n_knots`` knots from 0 to the largest size in the data, evenly spaced in the
+        amplitude (the square root of the size, what a diagram shows), each ramp as wide
+        as the gap to the next knot: as fine at small orbits as at large ones."""
         top = float(np.max(e)) if np.size(e) and np.max(e) > 0 else 1.0
-        knots = np.linspace(0.0, top, n_knots + 1)[:-1]
-        return SizeBasis(jnp.asarray(knots), jnp.asarray(top / n_knots))
+        edges = top * (np.arange(n_knots + 1) / n_knots) ** 2
+        return SizeBasis(jnp.asarray(edges[:-1]), jnp.asarray(np.diff(edges)))
 
     def ramps(self, e):
         """Softplus ramps at the knots, each zero at e = 0: (n_knots,)."""
-        w = self.width
+        w = self.widths
         return w * (jax.nn.softplus((e - self.knots) / w) - jax.nn.softplus(-self.knots / w))
+
+
+class RestLinear(eqx.Module):
+    """The fixed linear terms (L0, L1), (2, n_dof, 2 n_dof) in scaled units: set from the
+    data before training (:func:`pin_hopf`), not trained."""
+    matrices: jax.Array
 
 
 class AmplitudeCorrection(eqx.Module):
     """U(y; p) = (L0 + L1 s_p) y - phi(e) C q' (module docstring), in scaled
     units: states over their spread, forces over the residual's RMS."""
-    linear: jax.Array        # (2, n_dof, 2 n_dof): L0, L1
+    rest: RestLinear         # L0, L1
     phi_lin: jax.Array       # phi's free linear slope
     phi_raw: jax.Array       # (n_knots,) softplus -> phi's ramp slopes (>= 0)
     c_chol: jax.Array        # (n_dof, n_dof) lower triangle: C = R R^T
@@ -69,7 +82,7 @@ class AmplitudeCorrection(eqx.Module):
         n, k = n_dof, int(basis.knots.shape[0])
         keys = jax.random.split(key, 7)
         r = lambda i, *shape: init_scale * jax.random.normal(keys[i], shape)
-        self.linear = r(0, 2, n, 2 * n)
+        self.rest = RestLinear(jnp.zeros((2, n, 2 * n)))
         self.phi_lin = r(1)
         self.phi_raw = r(2, k) - 4.0            # ramps start nearly flat
         self.c_chol = jnp.eye(n) + r(5, n, n)
@@ -88,25 +101,61 @@ class AmplitudeCorrection(eqx.Module):
         s = self.scaling
         ps = (p - s.z_mean[-1]) / s.z_scale[-1]
         n = 2 * self.n_dof
-        return s.out_scale[:, None] * (self.linear[0] + self.linear[1] * ps) / s.z_scale[None, :n]
+        L = self.rest.matrices
+        return s.out_scale[:, None] * (L[0] + L[1] * ps) / s.z_scale[None, :n]
 
-    def __call__(self, z):
+    def damping_direction(self, z):
+        """C q' (force units), C positive semi-definite: a symmetric rescaling D_v of the
+        velocities, each over its spread and each force over its RMS, keeps R R^T PSD."""
         s, n = self.scaling, self.n_dof
-        y = z[:2 * n]
-        ys = y / s.z_scale[:2 * n]
-        e = self.size(ys)
-        # C acts in units where each force is its RMS and each state its spread;
-        # D_v q' is a symmetric rescaling, so C stays PSD in SI
         d_v = jnp.sqrt(s.out_scale / s.z_scale[n:2 * n])
         R = jnp.tril(self.c_chol)
-        damping = d_v * (R @ (R.T @ (d_v * y[n:])))
-        return self.linear_matrix(z[-1]) @ y - self.phi(e) * damping
+        return d_v * (R @ (R.T @ (d_v * z[n:2 * n])))
+
+    def size_of(self, z):
+        """e at the (unscaled) features z."""
+        n2 = 2 * self.n_dof
+        return self.size(z[:n2] / self.scaling.z_scale[:n2])
+
+    def __call__(self, z):
+        y = z[:2 * self.n_dof]
+        return (self.linear_matrix(z[-1]) @ y
+                - self.phi(self.size_of(z)) * self.damping_direction(z))
 
 
 def amplitude_correction(Z: np.ndarray, n_dof: int, scaling: Scaling, *, key,
-                         n_knots: int = 6, init_scale: float = 1e-2) -> AmplitudeCorrection:
+                         n_knots: int = 8, init_scale: float = 1e-2) -> AmplitudeCorrection:
     """A fresh correction whose knots span the sizes of the training samples ``Z``."""
     ys = np.asarray(Z)[:, :2 * n_dof] / np.asarray(scaling.z_scale[:2 * n_dof])
     e = np.mean(ys ** 2, axis=1)
     return AmplitudeCorrection(n_dof, scaling, SizeBasis.spanning(e, n_knots), key=key,
                                init_scale=init_scale)
+
+
+def pin_hopf(model, v_hopf: float, span: float = 1e3):
+    """``model`` (a UDE with an amplitude correction) with the correction's linear terms set
+    to one damping, equal on every coordinate in scaled units, that puts the equilibrium's
+    loss of stability at ``v_hopf`` (the data's estimate): the one linear fact the
+    unstable orbits measure. The model unchanged where no damping in [-span, span] does."""
+    c = model.correction
+    n = c.n_dof
+    shape = jnp.zeros((2, n, 2 * n)).at[0, :, n:].set(-jnp.eye(n))
+    y0 = jnp.zeros(model.n_state)
+
+    def with_damping(d):
+        return eqx.tree_at(lambda u: u.correction.rest.matrices, model, d * shape)
+
+    def growth(d):
+        m = with_damping(d)
+        J = jax.jacfwd(lambda y: m.vector_field(0.0, y, Drive.of(v_hopf)))(y0)
+        return float(np.max(np.real(np.linalg.eigvals(np.asarray(J)))))
+
+    grid = np.concatenate([-np.logspace(3, -3, 25) * span / 1e3, [0.0],
+                           np.logspace(-3, 3, 25) * span / 1e3])
+    g = np.array([growth(d) for d in grid])
+    # the smallest damping change that brings the growth rate to zero
+    cross = [k for k in range(len(grid) - 1) if np.sign(g[k]) != np.sign(g[k + 1])]
+    if not cross:
+        return model
+    k = min(cross, key=lambda k: min(abs(grid[k]), abs(grid[k + 1])))
+    return with_damping(brentq(growth, grid[k], grid[k + 1], xtol=1e-12))

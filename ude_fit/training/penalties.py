@@ -87,6 +87,14 @@ def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> 
                                            span / 4)))
 
 
+def hopf_from_unstable(data: TrainingData) -> float:
+    """The Hopf airspeed the training data's unstable orbits extrapolate to (+inf where
+    they cannot say)."""
+    ys = np.asarray(data.ys)
+    return _hopf_from_unstable(np.asarray(data.drive.param, float),
+                               amplitude(harmonics(ys[:, :, 0].T, 1)), np.asarray(data.label))
+
+
 def _hopf_from_unstable(P, amp, lab) -> float:
     """Where the unstable orbits' amplitude^2, linear in V near a Hopf point, reaches zero
     (as ``_metrics.estimate_from_data``); +inf where the data cannot say (fewer than two

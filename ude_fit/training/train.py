@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._precision import require_float64
-from ..models.amplitude import SizeBasis, amplitude_correction
+from ..models.amplitude import RestLinear, SizeBasis, amplitude_correction
 from ..models.corrections import (MLPCorrection, PolynomialParamCorrection,
                                   RestFreeCorrection, Scaling, feature_scaling)
 from ..models.flow import diffrax_samples, rk4_orbit
@@ -37,12 +37,13 @@ from .identify import TrainingData, residual_forces
 from .optimise import Diverged, descend, lane_of, minimize
 from .options import TrainConfig
 from .penalties import penalty_sum, regularity_points
+from .amplitude_start import start_amplitude
 
 
 def _trainable_spec(correction):
     """Every array of the correction is trained but its fixed parts (input/output scaling,
     an amplitude form's knots)."""
-    fixed = (Scaling, SizeBasis)
+    fixed = (Scaling, SizeBasis, RestLinear)
     return jax.tree_util.tree_map(
         lambda x: False if isinstance(x, fixed) else eqx.is_inexact_array(x), correction,
         is_leaf=lambda x: isinstance(x, fixed))
@@ -54,8 +55,9 @@ def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig):
     if cfg.param_scale != 1.0:
         sc = eqx.tree_at(lambda s: s.z_scale, sc, sc.z_scale.at[-1].multiply(cfg.param_scale))
     if cfg.form == "amplitude":
-        return amplitude_correction(Z, model.mech.n_dof, sc, key=key,
+        corr = amplitude_correction(Z, model.mech.n_dof, sc, key=key,
                                     init_scale=cfg.init_scale)
+        return start_amplitude(UDE(model.mech, corr), data).correction
     if cfg.param_dependence == "polynomial":
         inner = PolynomialParamCorrection(Z.shape[1], R.shape[1], sc, degree=cfg.param_degree,
                                           width=cfg.width, depth=cfg.depth, key=key,
@@ -228,7 +230,10 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
     params, eq_loss, failed = descend(
         equation_loss, params, (static, mech, jnp.asarray(Z), jnp.asarray(R), cfg.penalties,
                                 reg),
-        lanes=lanes, adam_steps=cfg.equation_steps, lbfgs_steps=cfg.equation_lbfgs_steps,
+        lanes=lanes,
+        # the amplitude form starts from the orbits' energy balance instead
+        adam_steps=0 if cfg.form == "amplitude" else cfg.equation_steps,
+        lbfgs_steps=0 if cfg.form == "amplitude" else cfg.equation_lbfgs_steps,
         lr=1e-2, progress=progress, stage="equation")
     loss = eq_loss
     if training == "trajectory":
