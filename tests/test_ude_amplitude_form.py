@@ -15,7 +15,7 @@ from ude_fit.analysis.continuation import hopf_point, trace_flutter
 from ude_fit.analysis.diagram_type import MAIN
 from ude_fit.analysis.metrics import locations
 from ude_fit.model_file import load_model, save_model
-from ude_fit.models.amplitude import AmplitudeCorrection, SizeBasis, pin_hopf
+from ude_fit.models.amplitude import AmplitudeCorrection, SizeBasis, pin_hopf, resolve
 from ude_fit.models.corrections import Scaling
 from ude_fit.models.mechanistic import Drive, FlutterQS
 from ude_fit.models.ude import UDE
@@ -35,7 +35,7 @@ def _correction(key=0, size=1.0, linear=0.0):
     c = AmplitudeCorrection(2, SCALING, SizeBasis.spanning(np.array([0.0, 2.0]), 6),
                             key=jax.random.PRNGKey(key), init_scale=size)
     L = linear * jax.random.normal(jax.random.PRNGKey(100 + key), (2, 2, 4))
-    return eqx.tree_at(lambda m: m.rest.matrices, c, L)
+    return eqx.tree_at(lambda m: (m.rest.matrices, m.linear), c, (L, jnp.zeros_like(L[0])))
 
 
 def test_value_and_slope_at_rest_are_the_linear_terms_alone():
@@ -101,6 +101,22 @@ def test_pinning_puts_the_hopf_point_where_asked(v_hopf):
     L = np.asarray(pinned.correction.rest.matrices)
     assert np.allclose(L[1], 0.0) and np.allclose(L[0][:, :2], 0.0)
     assert L[0][0, 2] == pytest.approx(L[0][1, 3]) and L[0][0, 3] == L[0][1, 2] == 0.0
+
+
+def test_a_trained_change_of_the_linear_terms_keeps_the_held_hopf_point():
+    """resolve adds the one damping that holds the Hopf point where pin_hopf put it, whatever
+    the trained change of the linear terms (here random: damping, stiffness, couplings)."""
+    pinned = pin_hopf(UDE(FlutterQS.nominal(), _correction(6, size=0.5)), 26.0)
+    change = 0.05 * jax.random.normal(jax.random.PRNGKey(7), (2, 4))
+    moved = eqx.tree_at(lambda m: m.correction.linear, pinned, change)
+    unheld = moved.with_correction(eqx.tree_at(lambda c: c.rest, moved.correction,
+                                               type(moved.correction.rest)(
+                                                   moved.correction.rest.matrices)))
+    free = hopf_point(resolve(unheld), (10.0, 40.0))
+    assert free is None or abs(free["param"] - 26.0) > 0.2      # the change moves it
+    held = resolve(moved)
+    assert held.correction.rest.v_hopf is None                  # concrete: nothing left to solve
+    assert hopf_point(held, (10.0, 40.0))["param"] == pytest.approx(26.0, abs=1e-6)
 
 
 def test_model_file_round_trip(tmp_path):

@@ -23,9 +23,14 @@ has, and with it the form had 10 folds on lee2020 (docs/experiments.md, twelfth 
 
 ``phi`` is a one-input network of a fixed form: a linear term plus softplus ramps at knots
 spread over the sizes the data holds (evenly in amplitude), each ramp's slope learnt and made
-non-negative. The linear terms are not trained (:class:`RestLinear`): :func:`pin_hopf` sets
-them from the data where the unstable orbits point at a Hopf point (trained free, they moved
-the Hopf point far from every orbit; docs/experiments.md, twelfth session).
+non-negative.
+
+The linear terms: where the unstable orbits point at a Hopf point (their amplitude^2 line),
+:func:`pin_hopf` sets one damping that puts the linearisation's loss of stability there and
+holds it (:class:`RestLinear`); training may change the linear terms at every airspeed alike
+(damping, stiffness, couplings: the mode's shape and frequency), and :func:`resolve` re-solves
+the held damping after each change so that the Hopf point stays put. Trained free, the linear
+terms moved the Hopf point far below every orbit (docs/experiments.md, twelfth session).
 """
 
 from __future__ import annotations
@@ -61,15 +66,20 @@ class SizeBasis(eqx.Module):
 
 
 class RestLinear(eqx.Module):
-    """The fixed linear terms (L0, L1), (2, n_dof, 2 n_dof) in scaled units: set from the
-    data before training (:func:`pin_hopf`), not trained."""
+    """The fixed part of the linear terms: (L0, L1), (2, n_dof, 2 n_dof) in scaled units,
+    set from the data before training (:func:`pin_hopf`), and the airspeed the Hopf point
+    is held at while the trained part changes (None: not held)."""
     matrices: jax.Array
+    v_hopf: float | None = eqx.field(static=True, default=None)
 
 
 class AmplitudeCorrection(eqx.Module):
     """U(y; p) = (L0 + L1 s_p) y - phi(e) C q' (module docstring), in scaled
     units: states over their spread, forces over the residual's RMS."""
-    rest: RestLinear         # L0, L1
+    rest: RestLinear         # L0, L1 fixed, and where the Hopf point is held
+    # (n_dof, 2 n_dof): the trained change of L0 (the same at every airspeed; a trained
+    # slope in the airspeed moved the loss of stability below the held Hopf point)
+    linear: jax.Array
     phi_lin: jax.Array       # phi's free linear slope
     phi_raw: jax.Array       # (n_knots,) softplus -> phi's ramp slopes (>= 0)
     c_chol: jax.Array        # (n_dof, n_dof) lower triangle: C = R R^T
@@ -83,6 +93,7 @@ class AmplitudeCorrection(eqx.Module):
         keys = jax.random.split(key, 7)
         r = lambda i, *shape: init_scale * jax.random.normal(keys[i], shape)
         self.rest = RestLinear(jnp.zeros((2, n, 2 * n)))
+        self.linear = r(0, n, 2 * n)
         self.phi_lin = r(1)
         self.phi_raw = r(2, k) - 4.0            # ramps start nearly flat
         self.c_chol = jnp.eye(n) + r(5, n, n)
@@ -101,7 +112,7 @@ class AmplitudeCorrection(eqx.Module):
         s = self.scaling
         ps = (p - s.z_mean[-1]) / s.z_scale[-1]
         n = 2 * self.n_dof
-        L = self.rest.matrices
+        L = self.rest.matrices.at[0].add(self.linear)
         return s.out_scale[:, None] * (L[0] + L[1] * ps) / s.z_scale[None, :n]
 
     def damping_direction(self, z):
@@ -139,11 +150,13 @@ def pin_hopf(model, v_hopf: float, span: float = 1e3):
     unstable orbits measure. The model unchanged where no damping in [-span, span] does."""
     c = model.correction
     n = c.n_dof
-    shape = jnp.zeros((2, n, 2 * n)).at[0, :, n:].set(-jnp.eye(n))
+    shape = _hopf_damping(n)
     y0 = jnp.zeros(model.n_state)
 
     def with_damping(d):
-        return eqx.tree_at(lambda u: u.correction.rest.matrices, model, d * shape)
+        rest = RestLinear(d * shape, float(v_hopf))
+        return eqx.tree_at(lambda u: (u.correction.rest, u.correction.linear), model,
+                           (rest, jnp.zeros_like(c.linear)))
 
     def growth(d):
         m = with_damping(d)
@@ -159,3 +172,61 @@ def pin_hopf(model, v_hopf: float, span: float = 1e3):
         return model
     k = min(cross, key=lambda k: min(abs(grid[k]), abs(grid[k + 1])))
     return with_damping(brentq(growth, grid[k], grid[k + 1], xtol=1e-12))
+
+
+def _hopf_damping(n_dof: int):
+    """The direction of the held damping: equal on every velocity, in scaled units."""
+    n = n_dof
+    return jnp.zeros((2, n, 2 * n)).at[0, :, n:].set(-jnp.eye(n))
+
+
+def _char_poly(A):
+    """Coefficients (1, a1, ..., an) of det(lambda I - A), Faddeev-LeVerrier: smooth in A."""
+    n = A.shape[0]
+    coeffs, M = [jnp.asarray(1.0)], jnp.zeros_like(A)
+    for k in range(1, n + 1):
+        M = A @ M + coeffs[-1] * jnp.eye(n)
+        coeffs.append(-jnp.trace(A @ M) / k)
+    return jnp.stack(coeffs)
+
+
+def hurwitz_hopf(A):
+    """The (n-1)th Hurwitz determinant of A's characteristic polynomial: zero where a pair
+    of eigenvalues sits on the imaginary axis (with the others off it), the Hopf condition
+    as a smooth function of the matrix."""
+    a = _char_poly(A)
+    n = A.shape[0]
+    coef = lambda k: a[k] if 0 <= k <= n else jnp.asarray(0.0)
+    H = jnp.stack([jnp.stack([coef(2 * j - i) for j in range(1, n)]) for i in range(1, n)])
+    return jnp.linalg.det(H)
+
+
+def resolve(model, newton_steps: int = 6):
+    """``model`` with its amplitude correction's linear terms made concrete: the fixed part
+    plus the trained change, plus the one damping (along the pinned direction) that keeps
+    the Hopf point at the held airspeed, by Newton's method from zero (the fixed part held
+    it before any change). Differentiable: the trained change moves the damping with it.
+    Any other model is returned as it is."""
+    c = model.correction
+    if not isinstance(c, AmplitudeCorrection):
+        return model
+    total = c.rest.matrices.at[0].add(c.linear)
+    D = _hopf_damping(c.n_dof)
+    y0 = jnp.zeros(model.n_state)
+
+    def with_matrices(L):
+        return eqx.tree_at(lambda u: (u.correction.rest, u.correction.linear), model,
+                           (RestLinear(L), jnp.zeros_like(c.linear)))
+
+    def residual(d):
+        m = with_matrices(total + d * D)
+        J = jax.jacfwd(lambda y: m.vector_field(0.0, y, Drive.of(c.rest.v_hopf)))(y0)
+        return hurwitz_hopf(J)
+
+    def newton(d, _):
+        return d - residual(d) / jax.grad(residual)(d), None
+
+    if c.rest.v_hopf is None:
+        return with_matrices(total)
+    d, _ = jax.lax.scan(newton, jnp.asarray(0.0), None, length=newton_steps)
+    return with_matrices(total + d * D)

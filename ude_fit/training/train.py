@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._precision import require_float64
-from ..models.amplitude import RestLinear, SizeBasis, amplitude_correction
+from ..models.amplitude import RestLinear, SizeBasis, amplitude_correction, resolve
 from ..models.corrections import (MLPCorrection, PolynomialParamCorrection,
                                   RestFreeCorrection, Scaling, feature_scaling)
 from ..models.flow import diffrax_samples, rk4_orbit
@@ -75,10 +75,11 @@ def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig):
 def equation_loss(params, static, mech, Z, R, penalties=(), reg=None):
     """The correction against the residual forces R at the features Z, plus the penalties
     that act in the equation stage."""
-    corr = eqx.combine(params["corr"], static)
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    corr = model.correction
     pred = jax.vmap(corr)(Z)
     loss = jnp.mean(((pred - R) / corr.scaling.out_scale) ** 2)
-    return loss + penalty_sum(penalties, "equation", UDE(mech, corr), reg)
+    return loss + penalty_sum(penalties, "equation", model, reg)
 
 
 def _simulate_with_monodromy(model, y0, T, drive, n, sub):
@@ -96,7 +97,7 @@ def trajectory_loss(params, static, mech, data: TrainingData, sub: int, penaltie
                     reg=None):
     """One-period trajectories from the measured states against the measured orbits (the
     paper's loss), plus the penalties that act in the trajectory stage."""
-    model = UDE(mech, eqx.combine(params["corr"], static))
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
     return (_trajectory_error(model, data, sub)
             + penalty_sum(penalties, "trajectory", model, reg))
 
@@ -138,7 +139,7 @@ def _periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
 def periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg=None):
     """Closed model orbits through the measured ones with the measured stability, plus the
     penalties that act in the periodic stage."""
-    model = UDE(mech, eqx.combine(params["corr"], static))
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
     return (_periodic_objective(model, params, data, cfg)
             + penalty_sum(cfg.penalties, "periodic", model, reg))
 
@@ -257,7 +258,7 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
             out.append(Diverged(failed[i]))
             continue
         corr = lane_of(params["corr"], i) if ensemble else params["corr"]
-        out.append((UDE(mech, eqx.combine(corr, static)),
+        out.append((resolve(UDE(mech, eqx.combine(corr, static))),
                     {"training": training, "equation_loss": float(eq_loss[i]),
                      "final_loss": float(loss[i])}))
     return out
