@@ -1,9 +1,10 @@
 """The amplitude form of the correction (ude_fit.models.amplitude, ``--correction-form
-amplitude``): linear terms affine in the airspeed plus a damping convex in the orbit's size.
-Checked against what the form promises by construction: the linearisation at rest is the
-explicit linear terms, the damping coefficient is convex and vanishes at rest, the damping
-force never feeds energy in where its coefficient is positive, and a traced diagram has one
-Hopf point and at most one fold whatever the weights."""
+amplitude``): linear terms plus a damping convex in the orbit's size. Checked against what the
+form promises by construction: the linearisation at rest is the explicit linear terms, the
+damping coefficient is convex and vanishes at rest, the damping force never feeds energy in
+where its coefficient is positive, the pinned Hopf point is where the continuation finds it
+and stays there when the linear terms change. (At most one fold is *not* promised: a random
+correction traced on the nominal aerofoil had four; docs/experiments.md, twelfth session.)"""
 
 import equinox as eqx
 import jax
@@ -11,9 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ude_fit.analysis.continuation import hopf_point, trace_flutter
-from ude_fit.analysis.diagram_type import MAIN
-from ude_fit.analysis.metrics import locations
+from ude_fit.analysis.continuation import hopf_point
 from ude_fit.model_file import load_model, save_model
 from ude_fit.models.amplitude import AmplitudeCorrection, SizeBasis, pin_hopf, resolve
 from ude_fit.models.corrections import Scaling
@@ -34,22 +33,21 @@ def _correction(key=0, size=1.0, linear=0.0):
     """Random weights of scale ``size``; linear terms of scale ``linear``."""
     c = AmplitudeCorrection(2, SCALING, SizeBasis.spanning(np.array([0.0, 2.0]), 6),
                             key=jax.random.PRNGKey(key), init_scale=size)
-    L = linear * jax.random.normal(jax.random.PRNGKey(100 + key), (2, 2, 4))
-    return eqx.tree_at(lambda m: (m.rest.matrices, m.linear), c, (L, jnp.zeros_like(L[0])))
+    L = linear * jax.random.normal(jax.random.PRNGKey(100 + key), (2, 4))
+    return eqx.tree_at(lambda m: (m.rest.matrices, m.linear), c, (L, jnp.zeros_like(L)))
 
 
 def test_value_and_slope_at_rest_are_the_linear_terms_alone():
     c = _correction(size=3.0, linear=0.5)
-    L = np.asarray(c.rest.matrices)
+    c = eqx.tree_at(lambda m: m.linear, c, 0.3 * jnp.ones((2, 4)))     # a trained change
+    # by hand: out_scale_i (fixed + trained)_ij / y_scale_j, force per state unit
+    want = (np.asarray(SCALING.out_scale)[:, None] * (np.asarray(c.rest.matrices) + 0.3)
+            / np.asarray(SCALING.z_scale[:4])[None, :])
     for V in (15.0, 22.0, 28.0):
         assert np.allclose(c(jnp.array([0.0, 0.0, 0.0, 0.0, V])), 0.0, atol=1e-12)
         J = jax.jacfwd(lambda y: c(jnp.concatenate([y, jnp.array([V])])))(jnp.zeros(4))
-        p = (V - 22.0) / 2.0
-        want = (np.asarray(SCALING.out_scale)[:, None]
-                * (L[0] + p * L[1])
-                / np.asarray(SCALING.z_scale[:4])[None, :])
         assert np.allclose(J, want, atol=1e-9)
-        assert np.allclose(c.linear_matrix(V), want, atol=1e-12)
+    assert np.allclose(c.linear_matrix(), want, atol=1e-12)
 
 
 @pytest.mark.parametrize("key", [0, 1, 2])
@@ -74,20 +72,6 @@ def test_the_damping_force_does_no_positive_work_where_its_coefficient_is_positi
         assert power * np.sign(float(c.phi(e))) <= 1e-12
 
 
-@pytest.mark.parametrize("key", [0, 1])
-def test_a_traced_diagram_has_one_hopf_point_and_one_fold(key):
-    """Random weights, shifted towards a subcritical picture (the damping first falls,
-    then rises with the orbit's size, as with phi' < 0 at rest): the branch from the Hopf
-    point turns back once, below the Hopf airspeed, and never again up to 0.2 m of heave."""
-    c = _correction(key, size=0.5, linear=0.025)
-    c = eqx.tree_at(lambda m: (m.phi_lin, m.phi_raw), c, (jnp.asarray(-2.0), c.phi_raw + 4.0))
-    model = UDE(FlutterQS.nominal(k_alpha2=0.0, k_alpha3=0.0), c)
-    b = trace_flutter(model, v_range=(10.0, 40.0), amp_max=0.2, scales=SCALES)
-    loc = locations({MAIN: b})
-    assert loc["hopf"] is not None
-    assert len(loc["folds"]) == 1 and loc["folds"][0] < loc["hopf"]
-
-
 @pytest.mark.parametrize("v_hopf", [21.0, 27.5])
 def test_pinning_puts_the_hopf_point_where_asked(v_hopf):
     """pin_hopf's one damping moves the equilibrium's loss of stability to the airspeed the
@@ -99,8 +83,8 @@ def test_pinning_puts_the_hopf_point_where_asked(v_hopf):
     assert hopf_point(pinned, (10.0, 40.0))["param"] == pytest.approx(v_hopf, abs=1e-6)
     # only the linear terms changed: the damping on each velocity, in scaled units
     L = np.asarray(pinned.correction.rest.matrices)
-    assert np.allclose(L[1], 0.0) and np.allclose(L[0][:, :2], 0.0)
-    assert L[0][0, 2] == pytest.approx(L[0][1, 3]) and L[0][0, 3] == L[0][1, 2] == 0.0
+    assert np.allclose(L[:, :2], 0.0)
+    assert L[0, 2] == pytest.approx(L[1, 3]) and L[0, 3] == L[1, 2] == 0.0
 
 
 def test_a_trained_change_of_the_linear_terms_keeps_the_held_hopf_point():

@@ -117,9 +117,9 @@ def add_fit_arguments(p) -> None:
                    "the linear change (where the Hopf point lies)")
     p.add_argument("--correction-form", default="network", choices=("network", "amplitude"),
                    help="the correction's form: a neural network of the states and the "
-                   "parameter (default), or (aerofoil) linear terms affine in the airspeed "
-                   "plus a damping and a stiffness of the oscillation's size, convex in it: "
-                   "one Hopf point and at most one fold by construction")
+                   "parameter (default), or (experimental, aerofoil) linear terms plus a "
+                   "damping convex in the oscillation's size, the Hopf point held where the "
+                   "unstable orbits point (docs/fitting.md; not a default)")
     p.add_argument("--control-input", action="store_true",
                    help="aerofoil: the recorded holding control as a known force on heave, "
                    "so a point held with some control is fitted as an orbit of the "

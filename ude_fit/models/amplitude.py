@@ -1,7 +1,7 @@
-"""A correction of the Hopf normal form's kind: linear terms affine in the parameter, plus a
-damping that depends on the oscillation's size alone.
+"""A correction of the Hopf normal form's kind: linear terms, plus a damping that depends on
+the oscillation's size alone.
 
-    U(y; p) = (L0 + L1 s_p) y  -  phi(e) C q',
+    U(y) = L y  -  phi(e) C q',
 
 with ``e(y)`` the squared size of the state (each displacement and velocity over its spread
 in the data, squares averaged): near-constant along a harmonic orbit, since the velocities'
@@ -10,12 +10,14 @@ spread is the displacements' times the orbits' frequency. ``C`` is positive semi
 model's plus the explicit linear terms (the Hopf point is theirs).
 
 Why this form: along a closed orbit of near-constant ``e`` the damping term's work per
-cycle is ``-phi(e)`` times a positive number, so to first order in averaging the growth rate
-of an orbit of size ``e`` at airspeed V is ``g(V) - k phi(e)`` plus whatever is linear in
-``e`` (a cubic stiffness's share). ``phi`` is convex (a free linear term plus softplus ramps
-with non-negative slopes), so that growth rate is concave in ``e``: at most two orbits per
-airspeed and at most one fold (a subcritical Hopf point, its fold and the stable branch
-beyond; or a supercritical one). A free network bends its work per cycle as often as the
+cycle is ``-phi(e)`` times a positive number. If the orbit's shape did not change with its
+size, the rest of the model's work per cycle would be ``g(V)`` times the size plus terms
+linear in it, and with ``phi`` convex (a free linear term plus softplus ramps with
+non-negative slopes) the net growth would be concave in ``e``: at most two orbits per airspeed
+and at most one fold. That is the design's premise, and it does not hold in general: the
+damping itself turns the heave-pitch phase of a flutter mode, and the aerodynamic work
+depends on that phase, so a random correction of this form traced on the nominal aerofoil
+had four folds (docs/experiments.md, twelfth session). A free network bends its work per cycle as often as the
 points' scatter asks, and each bend is a fold the physics does not have (docs/experiments.md:
 8 to 16 folds on lee2020). An amplitude-dependent *stiffness* is left out on purpose: on a
 flutter mode it moves the growth rate through the aerodynamic coupling, in whatever shape it
@@ -66,20 +68,19 @@ class SizeBasis(eqx.Module):
 
 
 class RestLinear(eqx.Module):
-    """The fixed part of the linear terms: (L0, L1), (2, n_dof, 2 n_dof) in scaled units,
-    set from the data before training (:func:`pin_hopf`), and the airspeed the Hopf point
-    is held at while the trained part changes (None: not held)."""
+    """The fixed part of the linear terms: L, (n_dof, 2 n_dof) in scaled units, set from the
+    data before training (:func:`pin_hopf`), and the airspeed the Hopf point is held at
+    while the trained part changes (None: not held)."""
     matrices: jax.Array
     v_hopf: float | None = eqx.field(static=True, default=None)
 
 
 class AmplitudeCorrection(eqx.Module):
-    """U(y; p) = (L0 + L1 s_p) y - phi(e) C q' (module docstring), in scaled
-    units: states over their spread, forces over the residual's RMS."""
-    rest: RestLinear         # L0, L1 fixed, and where the Hopf point is held
-    # (n_dof, 2 n_dof): the trained change of L0 (the same at every airspeed; a trained
-    # slope in the airspeed moved the loss of stability below the held Hopf point)
-    linear: jax.Array
+    """U(y) = L y - phi(e) C q' (module docstring), in scaled units: states over their
+    spread, forces over the residual's RMS. L is the same at every airspeed: a trained slope
+    in the airspeed moved the loss of stability below the held Hopf point."""
+    rest: RestLinear         # L's fixed part, and where the Hopf point is held
+    linear: jax.Array        # (n_dof, 2 n_dof): L's trained change
     phi_lin: jax.Array       # phi's free linear slope
     phi_raw: jax.Array       # (n_knots,) softplus -> phi's ramp slopes (>= 0)
     c_chol: jax.Array        # (n_dof, n_dof) lower triangle: C = R R^T
@@ -90,13 +91,13 @@ class AmplitudeCorrection(eqx.Module):
     def __init__(self, n_dof: int, scaling: Scaling, basis: SizeBasis, *, key,
                  init_scale: float = 1e-2):
         n, k = n_dof, int(basis.knots.shape[0])
-        keys = jax.random.split(key, 7)
+        keys = jax.random.split(key, 4)
         r = lambda i, *shape: init_scale * jax.random.normal(keys[i], shape)
-        self.rest = RestLinear(jnp.zeros((2, n, 2 * n)))
+        self.rest = RestLinear(jnp.zeros((n, 2 * n)))
         self.linear = r(0, n, 2 * n)
         self.phi_lin = r(1)
         self.phi_raw = r(2, k) - 4.0            # ramps start nearly flat
-        self.c_chol = jnp.eye(n) + r(5, n, n)
+        self.c_chol = jnp.eye(n) + r(3, n, n)
         self.scaling, self.basis, self.n_dof = scaling, basis, n_dof
 
     def size(self, y_scaled):
@@ -107,13 +108,11 @@ class AmplitudeCorrection(eqx.Module):
         """The size's damping coefficient: convex in e, zero at rest."""
         return self.phi_lin * e + jax.nn.softplus(self.phi_raw) @ self.basis.ramps(e)
 
-    def linear_matrix(self, p):
+    def linear_matrix(self):
         """The correction's Jacobian in y at rest, in force per state unit."""
         s = self.scaling
-        ps = (p - s.z_mean[-1]) / s.z_scale[-1]
-        n = 2 * self.n_dof
-        L = self.rest.matrices.at[0].add(self.linear)
-        return s.out_scale[:, None] * (L[0] + L[1] * ps) / s.z_scale[None, :n]
+        L = self.rest.matrices + self.linear
+        return s.out_scale[:, None] * L / s.z_scale[None, :2 * self.n_dof]
 
     def damping_direction(self, z):
         """C q' (force units), C positive semi-definite: a symmetric rescaling D_v of the
@@ -130,7 +129,7 @@ class AmplitudeCorrection(eqx.Module):
 
     def __call__(self, z):
         y = z[:2 * self.n_dof]
-        return (self.linear_matrix(z[-1]) @ y
+        return (self.linear_matrix() @ y
                 - self.phi(self.size_of(z)) * self.damping_direction(z))
 
 
@@ -177,7 +176,7 @@ def pin_hopf(model, v_hopf: float, span: float = 1e3):
 def _hopf_damping(n_dof: int):
     """The direction of the held damping: equal on every velocity, in scaled units."""
     n = n_dof
-    return jnp.zeros((2, n, 2 * n)).at[0, :, n:].set(-jnp.eye(n))
+    return jnp.zeros((n, 2 * n)).at[:, n:].set(-jnp.eye(n))
 
 
 def _char_poly(A):
@@ -210,7 +209,7 @@ def resolve(model, newton_steps: int = 6):
     c = model.correction
     if not isinstance(c, AmplitudeCorrection):
         return model
-    total = c.rest.matrices.at[0].add(c.linear)
+    total = c.rest.matrices + c.linear
     D = _hopf_damping(c.n_dof)
     y0 = jnp.zeros(model.n_state)
 

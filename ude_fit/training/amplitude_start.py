@@ -49,7 +49,7 @@ def balance_work(model: UDE, data: TrainingData) -> UDE:
     dt = np.asarray(data.period, float)[:, None] / m
     qd = Z[:, :, n:2 * n]
     zs = jnp.asarray(Z.reshape(k * m, -1))
-    lin = np.asarray(jax.vmap(lambda z: c.linear_matrix(z[-1]) @ z[:2 * n])(zs)).reshape(k, m, n)
+    lin = (Z[:, :, :2 * n] @ np.asarray(c.linear_matrix()).T)          # L y
     cq = np.asarray(jax.vmap(c.damping_direction)(zs)).reshape(k, m, n)
     e = np.asarray(jax.vmap(c.size_of)(zs))
     power = np.sum(cq * qd, axis=2) * dt                      # q'.C q' dt, (k, m), >= 0

@@ -51,8 +51,8 @@ class TrainConfig:
     # terms carry the linear change (RestFreeCorrection; aerofoil only)
     rest_free: bool = False
     # "network": a neural network of the states and the parameter; "amplitude": linear
-    # terms affine in the parameter plus a damping and a stiffness of the oscillation's size
-    # (models.amplitude; aerofoil only): at most one fold by construction
+    # terms plus a damping convex in the oscillation's size (models.amplitude; aerofoil
+    # only, experimental; docs/fitting.md)
     form: str = "network"
     penalties: tuple[Penalty, ...] = ()
 
