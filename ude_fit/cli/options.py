@@ -120,6 +120,13 @@ def add_fit_arguments(p) -> None:
                    "parameter (default), or (experimental, aerofoil) linear terms plus a "
                    "damping convex in the oscillation's size, the Hopf point held where the "
                    "unstable orbits point (docs/fitting.md; not a default)")
+    p.add_argument("--constraint-rounds", type=positive_int("--constraint-rounds", 0),
+                   default=0, metavar="N",
+                   help="aerofoil, periodic training: where the trained model breaks the "
+                   "energy-rising or rest-stability condition, train on with that penalty "
+                   "weighted to count as much as the data's misfit, ten times more each "
+                   "round while it is still broken, at most N rounds; a model that meets "
+                   "both is left as it is; no weights to choose (docs/fitting.md; default 0)")
     p.add_argument("--control-input", action="store_true",
                    help="aerofoil: the recorded holding control as a known force on heave, "
                    "so a point held with some control is fitted as an orbit of the "
@@ -161,4 +168,5 @@ def fit_options(args):
                           param_dependence=args.param_dependence,
                           param_degree=args.param_degree, rest_free=args.rest_free,
                           form=args.correction_form,
+                          constraint_rounds=args.constraint_rounds,
                           penalties=tuple(p for p in penalties if p.weight)))

@@ -55,11 +55,15 @@ class TrainConfig:
     # only, experimental; docs/fitting.md)
     form: str = "network"
     penalties: tuple[Penalty, ...] = ()
+    # aerofoil, periodic training: at most this many rounds of training on with the broken
+    # constraints' penalties, weighted by the data's misfit (training.train._enforce; 0: none)
+    constraint_rounds: int = 0
 
     def __post_init__(self):
         for name in ("width", "depth"):
             _check_int(name, getattr(self, name), 1)
         _check_int("param_degree", self.param_degree, 0)
+        _check_int("constraint_rounds", self.constraint_rounds, 0)
         for name in ("equation_steps", "equation_lbfgs_steps", "adam_steps", "lbfgs_steps"):
             if getattr(self, name) is not None:
                 _check_int(name, getattr(self, name), 0)
@@ -107,7 +111,8 @@ class TrainConfig:
 
     def needs_points(self) -> bool:
         """Whether any active penalty reads the regularity points."""
-        return any(p.needs_points and p.weight for p in self.penalties)
+        return (any(p.needs_points and p.weight for p in self.penalties)
+                or self.constraint_rounds > 0)
 
     def to_json(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
@@ -209,6 +214,15 @@ class FitOptions:
         if not system_kind(self.system).autonomous and self.train.form == "amplitude":
             raise ValueError("--correction-form amplitude applies to --system flutter only "
                              "(a self-excited system's orbit sizes)")
+        if self.train.constraint_rounds:
+            if not system_kind(self.system).autonomous:
+                raise ValueError("--constraint-rounds applies to --system flutter only (its "
+                                 "conditions are an equilibrium's and a self-excited branch's)")
+            if self.training != "periodic":
+                raise ValueError("--constraint-rounds applies to --training periodic only")
+            if self.starts_together:
+                raise ValueError("--constraint-rounds needs the starts trained one at a time "
+                                 "(not --starts-together): each start takes its own rounds")
         if not isinstance(self.control_input, bool):
             raise ValueError(f"control_input must be True or False, not {self.control_input!r}")
         if self.control_input and not system_kind(self.system).autonomous:
@@ -231,6 +245,8 @@ class FitOptions:
                 nn_only.append("--starts-together")
             if self.train.rest_free:
                 nn_only.append("--rest-free")
+            if self.train.constraint_rounds:
+                nn_only.append("--constraint-rounds")
             if self.train.param_scale != 1.0:
                 nn_only.append("--param-scale")
             if self.train.form != "network":

@@ -147,6 +147,13 @@ class Penalty:
                 or w < 0:
             raise ValueError(f"--{self.option} must be a finite number at least 0, not {w!r}")
 
+    @property
+    def tolerance(self) -> float:
+        """The value at or below which the penalty's condition counts as met (for the
+        hinges with a margin: a shortfall of at most 1 % of the margin everywhere)."""
+        margin = getattr(self, "margin", 0.0)
+        return (0.01 * margin) ** 2
+
     def active(self, stage: str) -> bool:
         return bool(self.weight) and stage in self.stages
 
@@ -365,3 +372,13 @@ class WeightDecay(Penalty):
 # every penalty, in the order the losses add them (the command line's flags come from it)
 PENALTIES = (EnergyShape, EnergyRising, RestStability, EquilibriumPenalty, SmoothnessPenalty,
              WeightDecay)
+
+# the conditions ``--constraint-rounds`` enforces (training.train._enforce): both hold on
+# the physics' picture (one branch V(A), an equilibrium stable where the data shows it),
+# both are hinges that vanish there, so a fit that meets them is not touched
+CONSTRAINTS = (EnergyRising, RestStability)
+
+
+def constraints_for(cfg) -> tuple[Penalty, ...]:
+    """The constraints, each at weight 1 (the enforcement sets its own weights)."""
+    return tuple(kind(1.0) for kind in CONSTRAINTS) if cfg.constraint_rounds else ()

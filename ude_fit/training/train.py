@@ -1,6 +1,6 @@
 """Training the correction of a UDE: pure loss functions and the optimiser loop.
 
-Three losses, used in this order by :func:`train_ude`:
+The stages, in the order :func:`train_ude` runs them:
 
 * ``equation``: the correction against the residual force the mechanistic model
   leaves on every sample of the averaged orbits (no simulation; a fast start).
@@ -14,6 +14,10 @@ Three losses, used in this order by :func:`train_ude`:
   polynomial of the monodromy matrix at 1 (for the aerofoil with its trivial
   multiplier factored out), which changes sign exactly when a real multiplier
   crosses 1, as it does at a fold: smooth and with no eigen-decomposition.
+* ``constraints`` (aerofoil, ``constraint_rounds`` > 0): where the periodic fit breaks
+  the energy-rising or rest-stability condition, training goes on with the broken penalty
+  weighted from the data's misfit, raised each round while it is still broken
+  (:func:`_enforce`); a fit that meets both is not touched.
 
 Optimisation: Adam, then L-BFGS (optax), all float64. Losses are module-level
 functions of (trainable, static, data), compiled once per problem structure.
@@ -36,7 +40,7 @@ from ..models.ude import UDE
 from .identify import TrainingData, residual_forces
 from .optimise import Diverged, descend, lane_of, minimize
 from .options import TrainConfig
-from .penalties import penalty_sum, regularity_points
+from .penalties import constraints_for, penalty_sum, regularity_points
 from .amplitude_start import start_amplitude
 
 
@@ -134,6 +138,64 @@ def _periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
     y0 = data.ys[:, 0, :] + params["dy0"] * data.y_scale
     T = data.period * (1.0 + params["dT"]) if autonomous else data.period
     return jnp.mean(jax.vmap(one)(data.ys, y0, T, data.drive, data.label))
+
+
+def constrained_periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig,
+                              reg, constraints, weights):
+    """The periodic loss plus the broken constraints' penalties at ``weights`` (an array,
+    so that raising them needs no new compilation)."""
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
+    return periodic_loss(params, static, mech, data, cfg, reg) + extra
+
+
+@eqx.filter_jit
+def _misfit_and_constraints(params, static, mech, data, cfg, reg, constraints):
+    """The periodic objective without penalties, and every constraint's penalty."""
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    return (_periodic_objective(model, params, data, cfg),
+            jnp.stack([c.value(model, reg) for c in constraints]))
+
+
+def _enforce(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, loss,
+             progress=None):
+    """Constraints instead of weights (aerofoil, after periodic training). Where the trained
+    model breaks one of :data:`~.penalties.CONSTRAINTS` (its penalty above its tolerance),
+    training goes on with that penalty added at the weight that makes it count as much as
+    the data's misfit at that moment, then ten times more each round while it is still
+    broken, for at most ``cfg.constraint_rounds`` rounds. The weight is the data's own
+    business, not the user's: a model that meets every constraint is left exactly as it
+    was, so data whose fit already has the physics' picture is not touched.
+
+    Returns (params, loss, failed, info): ``descend``'s first three, and info's scalars:
+    rounds trained, whether every constraint is met at the end, each constraint's final
+    value and weight."""
+    constraints = constraints_for(cfg)
+    tolerance = np.array([c.tolerance for c in constraints])
+    measure = lambda p: _misfit_and_constraints(p, static, mech, data, cfg, reg, constraints)
+    weights = np.zeros(len(constraints))
+    rounds, failed = 0, {}
+    while True:
+        misfit, values = (np.asarray(x, float) for x in measure(params))
+        broken = values > tolerance
+        if not broken.any() or rounds == cfg.constraint_rounds:
+            break
+        with np.errstate(divide="ignore"):
+            first = misfit / values              # where broken, values > 0
+        weights = np.where(broken, np.maximum(10.0 * weights, first), weights)
+        rounds += 1
+        params, loss, failed = descend(
+            constrained_periodic_loss, params,
+            (static, mech, data, cfg, reg, constraints, jnp.asarray(weights)), lanes=None,
+            adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps, lr=cfg.learning_rate,
+            progress=progress, stage=f"constraints, round {rounds}")
+        if failed:
+            return params, loss, failed, {"constraint_rounds": rounds}
+    info = {"constraint_rounds": rounds, "constraints_met": bool(not broken.any())}
+    for c, v, w in zip(constraints, values, weights):
+        info[f"{c.option}_value"] = float(v)
+        info[f"{c.option}_weight"] = float(w)
+    return params, loss, failed, info
 
 
 def periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg=None):
@@ -252,6 +314,12 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
             periodic_loss, params, (static, mech, data, cfg, reg), lanes=lanes,
             adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps, lr=cfg.learning_rate,
             failed=failed, progress=progress, stage="periodic")
+    enforced = {}
+    if training == "periodic" and cfg.constraint_rounds and not failed:
+        if ensemble:    # FitOptions refuses the pair: the rounds differ from start to start
+            raise ValueError("constraint rounds need the starts trained one at a time")
+        params, loss, failed, enforced = _enforce(params, static, mech, data, cfg, reg, loss,
+                                                  progress)
     out = []
     for i in range(len(keys)):
         if i in failed:
@@ -260,5 +328,5 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
         corr = lane_of(params["corr"], i) if ensemble else params["corr"]
         out.append((resolve(UDE(mech, eqx.combine(corr, static))),
                     {"training": training, "equation_loss": float(eq_loss[i]),
-                     "final_loss": float(loss[i])}))
+                     "final_loss": float(loss[i]), **enforced}))
     return out

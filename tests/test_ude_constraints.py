@@ -1,0 +1,91 @@
+"""Constraints instead of weights (``--constraint-rounds``, training.train._enforce): a fit
+that breaks the energy-rising or rest-stability condition trains on with the broken
+penalty at a weight set from the data's misfit, raised tenfold per round while it is still
+broken; a fit that meets both is left exactly as it was."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from tests.ude_fixtures import write_truth_campaign
+from ude_fit import UDE, identify, load, training_data
+from ude_fit.training.options import FitOptions, TrainConfig
+from ude_fit.training.penalties import (constraints_for, EnergyRising, RestStability,
+                                        regularity_points)
+from ude_fit.training.train import _enforce
+
+jax.config.update("jax_enable_x64", True)
+
+
+class SpeedDamping(eqx.Module):
+    """A heave force k (V - 20) h': its work per cycle is k (V - 20) <h'^2>, so k < 0 takes
+    energy out as the airspeed grows (the energy-rising condition broken)."""
+    k: jax.Array
+
+    def __call__(self, z):
+        return jnp.stack([self.k * (z[4] - 20.0) * z[2], 0.0 * z[4]])
+
+
+@pytest.fixture(scope="module")
+def problem(tmp_path_factory):
+    path = tmp_path_factory.mktemp("constraints") / "f.h5"
+    write_truth_campaign(path, "flutter", airspeeds=(18.0, 21.0, 23.6))
+    data = training_data(load([path], "flutter"))
+    mech, _ = identify(data, "flutter")
+    cfg = TrainConfig(adam_steps=50, lbfgs_steps=20, constraint_rounds=3).for_system("flutter")
+    return data, mech, cfg, regularity_points(data)
+
+
+def _enforced(problem, k):
+    data, mech, cfg, reg = problem
+    trainable, static = eqx.partition(SpeedDamping(jnp.asarray(k)), eqx.is_inexact_array)
+    params = {"corr": trainable, "dy0": jnp.zeros(data.ys[:, 0, :].shape),
+              "dT": jnp.zeros(data.period.shape)}
+    before = [float(c.value(UDE(mech, SpeedDamping(jnp.asarray(k))), reg))
+              for c in constraints_for(cfg)]
+    out, _, failed, info = _enforce(params, static, mech, data, cfg, reg,
+                                    np.array([np.nan]))
+    return before, float(out["corr"].k), failed, info
+
+
+def test_a_fit_that_meets_the_constraints_is_left_as_it_is(problem):
+    # the mechanistic model identified from the rig's own orbits, plus a correction that
+    # feeds energy in as the airspeed grows: both conditions hold
+    before, k, failed, info = _enforced(problem, 1.0)
+    assert all(v <= c.tolerance for v, c in zip(before, constraints_for(problem[2])))
+    assert not failed
+    assert info["constraint_rounds"] == 0 and info["constraints_met"]
+    assert k == 1.0                              # not trained: exactly as it was
+    assert info["energy-rising_weight"] == 0.0 and info["rest-stability_weight"] == 0.0
+
+
+def test_a_broken_condition_is_enforced_without_a_weight_from_the_user(problem):
+    before, k, failed, info = _enforced(problem, -50.0)
+    rising, rest = before
+    assert rising > 100 * EnergyRising(1.0).tolerance          # broken, by far
+    assert rest > 100 * RestStability(1.0).tolerance           # and so is the other
+    assert not failed
+    assert info["constraint_rounds"] >= 1
+    assert info["energy-rising_weight"] > 0
+    # trained on until the work per cycle rises with the airspeed again (or nearly)
+    assert k > -50.0
+    assert info["energy-rising_value"] < 0.01 * rising
+    assert info["rest-stability_value"] < 0.01 * rest
+
+
+@pytest.mark.parametrize("fields, message", [
+    (dict(system="oscillator"), "applies to --system flutter only"),
+    (dict(system="flutter", training="trajectory"), "applies to --training periodic only"),
+    (dict(system="flutter", starts_together=True), "one at a time"),
+    (dict(system="flutter", approximator="gp"), "apply to --approximator nn only"),
+])
+def test_options_refuse_what_the_rounds_cannot_do(fields, message):
+    with pytest.raises(ValueError, match=message):
+        FitOptions(train=TrainConfig(constraint_rounds=2), **fields)
+
+
+def test_rounds_must_be_a_count():
+    with pytest.raises(ValueError, match="constraint_rounds must be an integer at least 0"):
+        TrainConfig(constraint_rounds=-1)
