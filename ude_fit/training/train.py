@@ -144,9 +144,10 @@ def constrained_periodic_loss(params, static, mech, data: TrainingData, cfg: Tra
                               reg, constraints, weights):
     """The periodic loss plus the broken constraints' penalties at ``weights`` (an array,
     so that raising them needs no new compilation)."""
+    # resolved once: for the amplitude form resolving is a Newton solve
     model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
     extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
-    return periodic_loss(params, static, mech, data, cfg, reg) + extra
+    return _periodic_loss_of(model, params, data, cfg, reg) + extra
 
 
 @eqx.filter_jit
@@ -201,7 +202,11 @@ def _enforce(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, lo
 def periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg=None):
     """Closed model orbits through the measured ones with the measured stability, plus the
     penalties that act in the periodic stage."""
-    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    return _periodic_loss_of(resolve(UDE(mech, eqx.combine(params["corr"], static))),
+                             params, data, cfg, reg)
+
+
+def _periodic_loss_of(model, params, data: TrainingData, cfg: TrainConfig, reg):
     return (_periodic_objective(model, params, data, cfg)
             + penalty_sum(cfg.penalties, "periodic", model, reg))
 
