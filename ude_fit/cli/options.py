@@ -127,6 +127,12 @@ def add_fit_arguments(p) -> None:
                    "weighted to count as much as the data's misfit, ten times more each "
                    "round while it is still broken, at most N rounds; a model that meets "
                    "both is left as it is; no weights to choose (docs/fitting.md; default 0)")
+    p.add_argument("--branch-rounds", type=positive_int("--branch-rounds", 0),
+                   default=0, metavar="N",
+                   help="aerofoil, periodic training: N rounds of training on with the "
+                   "measured orbits asked to lie on the branch from the Hopf point, traced "
+                   "in amplitude, with the slope their stability implies and one turn at "
+                   "most (docs/fitting.md; default 0)")
     p.add_argument("--control-input", action="store_true",
                    help="aerofoil: the recorded holding control as a known force on heave, "
                    "so a point held with some control is fitted as an orbit of the "
@@ -169,4 +175,5 @@ def fit_options(args):
                           param_degree=args.param_degree, rest_free=args.rest_free,
                           form=args.correction_form,
                           constraint_rounds=args.constraint_rounds,
+                          branch_rounds=args.branch_rounds,
                           penalties=tuple(p for p in penalties if p.weight)))

@@ -58,12 +58,16 @@ class TrainConfig:
     # aerofoil, periodic training: at most this many rounds of training on with the broken
     # constraints' penalties, weighted by the data's misfit (training.train._enforce; 0: none)
     constraint_rounds: int = 0
+    # aerofoil, periodic training: rounds of training on with the measured orbits asked to
+    # lie on the branch from the Hopf point, one turn at most (training.branch; 0: none)
+    branch_rounds: int = 0
 
     def __post_init__(self):
         for name in ("width", "depth"):
             _check_int(name, getattr(self, name), 1)
         _check_int("param_degree", self.param_degree, 0)
         _check_int("constraint_rounds", self.constraint_rounds, 0)
+        _check_int("branch_rounds", self.branch_rounds, 0)
         for name in ("equation_steps", "equation_lbfgs_steps", "adam_steps", "lbfgs_steps"):
             if getattr(self, name) is not None:
                 _check_int(name, getattr(self, name), 0)
@@ -112,7 +116,7 @@ class TrainConfig:
     def needs_points(self) -> bool:
         """Whether any active penalty reads the regularity points."""
         return (any(p.needs_points and p.weight for p in self.penalties)
-                or self.constraint_rounds > 0)
+                or self.constraint_rounds > 0 or self.branch_rounds > 0)
 
     def to_json(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
@@ -214,15 +218,20 @@ class FitOptions:
         if not system_kind(self.system).autonomous and self.train.form == "amplitude":
             raise ValueError("--correction-form amplitude applies to --system flutter only "
                              "(a self-excited system's orbit sizes)")
-        if self.train.constraint_rounds:
+        rounds = (("constraint_rounds", "its conditions are an equilibrium's and a "
+                   "self-excited branch's"),
+                  ("branch_rounds", "a self-excited branch from a Hopf point"))
+        for name, why in rounds:
+            if not getattr(self.train, name):
+                continue
+            flag = "--" + name.replace("_", "-")
             if not system_kind(self.system).autonomous:
-                raise ValueError("--constraint-rounds applies to --system flutter only (its "
-                                 "conditions are an equilibrium's and a self-excited branch's)")
+                raise ValueError(f"{flag} applies to --system flutter only ({why})")
             if self.training != "periodic":
-                raise ValueError("--constraint-rounds applies to --training periodic only")
+                raise ValueError(f"{flag} applies to --training periodic only")
             if self.starts_together:
-                raise ValueError("--constraint-rounds needs the starts trained one at a time "
-                                 "(not --starts-together): each start takes its own rounds")
+                raise ValueError(f"{flag} needs the starts trained one at a time (not "
+                                 "--starts-together): each start takes its own rounds")
         if not isinstance(self.control_input, bool):
             raise ValueError(f"control_input must be True or False, not {self.control_input!r}")
         if self.control_input and not system_kind(self.system).autonomous:
@@ -247,6 +256,8 @@ class FitOptions:
                 nn_only.append("--rest-free")
             if self.train.constraint_rounds:
                 nn_only.append("--constraint-rounds")
+            if self.train.branch_rounds:
+                nn_only.append("--branch-rounds")
             if self.train.param_scale != 1.0:
                 nn_only.append("--param-scale")
             if self.train.form != "network":

@@ -18,6 +18,9 @@ The stages, in the order :func:`train_ude` runs them:
   the energy-rising or rest-stability condition, training goes on with the broken penalty
   weighted from the data's misfit, raised each round while it is still broken
   (:func:`_enforce`); a fit that meets both is not touched.
+* ``branch`` (aerofoil, ``branch_rounds`` > 0, experimental): the measured orbits asked to
+  lie on the branch from the Hopf point, traced in amplitude, with one turn at most
+  (:mod:`.branch`, :func:`_branch_rounds`).
 
 Optimisation: Adam, then L-BFGS (optax), all float64. Losses are module-level
 functions of (trainable, static, data), compiled once per problem structure.
@@ -42,6 +45,7 @@ from .optimise import Diverged, descend, lane_of, minimize
 from .options import TrainConfig
 from .penalties import constraints_for, penalty_sum, regularity_points
 from .amplitude_start import start_amplitude
+from .branch import BranchData, branch_terms, trace_branch
 
 
 def _trainable_spec(correction):
@@ -199,6 +203,96 @@ def _enforce(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, lo
     return params, loss, failed, info
 
 
+def branch_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, constraints,
+                weights, trace, points, w_branch):
+    """The constrained periodic loss plus the branch term (:mod:`.branch`) at ``w_branch``."""
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
+    terms = branch_terms(model, trace, *points)
+    return _periodic_loss_of(model, params, data, cfg, reg) + extra + w_branch * sum(terms)
+
+
+@eqx.filter_jit
+def _branch_terms_now(params, static, mech, trace, points):
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    return jnp.stack(branch_terms(model, trace, *points))
+
+
+def _branch_rounds(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, loss,
+                   enforced, progress=None):
+    """Training on with the branch term (:mod:`.branch`): trace the branch from the Hopf
+    point in amplitude, train with its linearised airspeeds, trace again, for at most
+    ``cfg.branch_rounds`` rounds. The term's weight makes it count as much as the data's
+    misfit in the first round, ten times more each round while its hinges (stability slopes,
+    one turn, reach) are broken. A round whose result is worse by the traced (not linearised)
+    branch than its start did not stay where the linearisation holds: it is undone and tried
+    again with half the steps, at most three times, and then the rounds end.
+
+    Returns (params, loss, failed, info); info's scalars: rounds kept, why they stopped
+    early, the final trace's terms, grid points solved, share of points out of reach, and
+    the term's weight. (Experimental, off by default: docs/fitting.md.)"""
+    constraints = constraints_for(cfg)
+    weights = jnp.asarray([enforced.get(f"{c.option}_weight", 0.0) for c in constraints])
+    bd = BranchData.of(data)
+    P = bd.V
+    v_span = max(float(np.ptp(P)), 0.1 * float(P.max()))
+    points = (jnp.asarray(bd.V), jnp.asarray(bd.label), v_span, float(bd.amps.max()))
+    n = data.ys.shape[1] * cfg.substeps
+
+    def state(p):
+        model = resolve(UDE(mech, eqx.combine(p["corr"], static)))
+        got = trace_branch(model, bd, n)
+        misfit = float(np.asarray(_periodic_objective(model, p, data, cfg)))
+        if got is None:
+            return None, None, misfit, 0, 1.0
+        trace, solved = got
+        terms = np.asarray(_branch_terms_now(p, static, mech, trace, points))
+        # points beyond the branch's reach count as missed by the whole airspeed span
+        unreached = float(np.sum(1.0 - np.asarray(trace.reach))) / len(bd.V)
+        return trace, terms, misfit, solved, unreached
+
+    w_b, failed, info = 0.0, {}, {"branch_rounds": 0}
+    got = state(params)
+    for rnd in range(1, cfg.branch_rounds + 1):
+        trace, terms, misfit, solved, unreached = got
+        if trace is None:
+            info["branch_stop"] = "no branch from a Hopf point"
+            break
+        total = float(terms.sum())
+        if total <= 0 and unreached == 0:
+            break
+        hinges = float(np.sum(terms[1:] > 1e-12)) + unreached     # (rounding is not broken)
+        w_b = misfit / max(total + unreached, 1e-12) if rnd == 1 else (10.0 * w_b if hinges > 0 else w_b)
+        before = misfit + w_b * (total + unreached)
+        # a trust region by the number of steps: a round the traced branch says is worse
+        # is undone and tried again with half the steps, at most three times
+        for shrink in (1, 2, 4, 8):
+            new, new_loss, failed = descend(
+                branch_loss, params,
+                (static, mech, data, cfg, reg, constraints, weights, trace, points,
+                 jnp.asarray(w_b)), lanes=None,
+                adam_steps=cfg.adam_steps // shrink, lbfgs_steps=cfg.lbfgs_steps // shrink,
+                lr=cfg.learning_rate, progress=progress, stage=f"branch, round {rnd}")
+            cand = None if failed else state(new)
+            after = (np.inf if cand is None or cand[0] is None else
+                     cand[2] + w_b * (float(cand[1].sum()) + cand[4]))
+            failed = {}
+            if after <= before:
+                break
+        if not after <= before:
+            info["branch_stop"] = f"round {rnd} undone at every step count"
+            break
+        params, loss, got = new, new_loss, cand
+        info["branch_rounds"] = rnd
+    if got[0] is not None:
+        trace, terms, misfit, solved, unreached = got
+        info.update({f"branch_{name}": float(v) for name, v in
+                     zip(("point", "stability", "one_turn", "reach"), terms)})
+        info.update(branch_solved=int(solved), branch_unreached=float(unreached),
+                    branch_weight=float(w_b))
+    return params, loss, failed, info
+
+
 def periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg=None):
     """Closed model orbits through the measured ones with the measured stability, plus the
     penalties that act in the periodic stage."""
@@ -325,6 +419,12 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
             raise ValueError("constraint rounds need the starts trained one at a time")
         params, loss, failed, enforced = _enforce(params, static, mech, data, cfg, reg, loss,
                                                   progress)
+    if training == "periodic" and cfg.branch_rounds and not failed:
+        if ensemble:
+            raise ValueError("branch rounds need the starts trained one at a time")
+        params, loss, failed, more = _branch_rounds(params, static, mech, data, cfg, reg, loss,
+                                                    enforced, progress)
+        enforced = {**enforced, **more}
     out = []
     for i in range(len(keys)):
         if i in failed:
