@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._fourier import amplitude, harmonics
-from ..analysis.continuation import hopf_point
+from ..models.equilibria import hopf_point
 from ..models.flow import rk4_orbit
 from ..models.mechanistic import Drive
 from ..models.ude import UDE
