@@ -54,8 +54,11 @@ def _residual(model: UDE, u, A, su, n: int):
 
 @eqx.filter_jit
 def _residual_and_jacobian(model, u, A, su, n: int):
-    return jax.jacfwd(lambda v: _residual(model, v, A, su, n), has_aux=False)(u), \
-        _residual(model, u, A, su, n)
+    """(dr/du, r) from one forward-mode pass (the orbit integrated once)."""
+    def f(v):
+        r = _residual(model, v, A, su, n)
+        return r, r
+    return jax.jacfwd(f, has_aux=True)(u)
 
 
 class BranchTrace(eqx.Module):
