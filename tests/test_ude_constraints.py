@@ -1,7 +1,8 @@
-"""Constraints instead of weights (``--constraint-rounds``, training.train._enforce): a fit
-that breaks the energy-rising or rest-stability condition trains on with the broken
-penalty at a weight set from the data's misfit, raised tenfold per round while it is still
-broken; a fit that meets both is left exactly as it was."""
+"""Constraints instead of weights (``--constraint-rounds``,
+training.rounds.enforce_constraints): a fit that breaks the energy-rising or rest-stability
+condition trains on with the broken penalty at a weight set from the data's misfit, raised
+tenfold per round while it is still broken; a fit that meets both is left exactly as it
+was."""
 
 import equinox as eqx
 import jax
@@ -14,7 +15,7 @@ from ude_fit import UDE, identify, load, training_data
 from ude_fit.training.options import FitOptions, TrainConfig
 from ude_fit.training.penalties import (constraints_for, EnergyRising, RestStability,
                                         regularity_points)
-from ude_fit.training.train import _enforce
+from ude_fit.training.rounds import enforce_constraints
 
 jax.config.update("jax_enable_x64", True)
 
@@ -45,8 +46,8 @@ def _enforced(problem, k):
               "dT": jnp.zeros(data.period.shape)}
     before = [float(c.value(UDE(mech, SpeedDamping(jnp.asarray(k))), reg))
               for c in constraints_for(cfg)]
-    out, _, failed, info = _enforce(params, static, mech, data, cfg, reg,
-                                    np.array([np.nan]))
+    out, _, failed, info = enforce_constraints(params, static, mech, data, cfg, reg,
+                                               np.array([np.nan]))
     return before, float(out["corr"].k), failed, info
 
 

@@ -358,7 +358,8 @@ def test_trajectory_training_lowers_the_trajectory_error(tmp_path):
     import jax
 
     from ude_fit import UDE, identify, train_ude, training_data
-    from ude_fit.training.train import _trainable_spec, new_correction, trajectory_loss
+    from ude_fit.training.losses import trajectory_loss
+    from ude_fit.training.train import _trainable_spec, new_correction
     write_truth_campaign(tmp_path / "f.h5", "flutter", airspeeds=(18.0, 21.0, 23.6))
     data = training_data(load([tmp_path / "f.h5"], "flutter"))
     mech, _ = identify(data, "flutter")
@@ -631,7 +632,7 @@ def test_energy_rising_acts_in_the_periodic_stage(tmp_path):
 
     from ude_fit import UDE, identify, training_data
     from ude_fit.training.penalties import regularity_points
-    from ude_fit.training.train import periodic_loss
+    from ude_fit.training.losses import periodic_loss
 
     class SpeedDamping(eqx.Module):
         k: float = eqx.field(static=True)

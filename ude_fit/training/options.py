@@ -56,7 +56,8 @@ class TrainConfig:
     form: str = "network"
     penalties: tuple[Penalty, ...] = ()
     # aerofoil, periodic training: at most this many rounds of training on with the broken
-    # constraints' penalties, weighted by the data's misfit (training.train._enforce; 0: none)
+    # constraints' penalties, weighted by the data's misfit
+    # (training.rounds.enforce_constraints; 0: none)
     constraint_rounds: int = 0
     # aerofoil, periodic training: rounds of training on with the measured orbits asked to
     # lie on the branch from the Hopf point, one turn at most (training.branch; 0: none)

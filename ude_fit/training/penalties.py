@@ -373,8 +373,8 @@ class WeightDecay(Penalty):
 PENALTIES = (EnergyShape, EnergyRising, RestStability, EquilibriumPenalty, SmoothnessPenalty,
              WeightDecay)
 
-# the conditions ``--constraint-rounds`` enforces (training.train._enforce): both hold on
-# the physics' picture (one branch V(A), an equilibrium stable where the data shows it),
+# the conditions ``--constraint-rounds`` enforces (training.rounds.enforce_constraints): both
+# hold on the physics' picture (one branch V(A), an equilibrium stable where the data shows it),
 # both are hinges that vanish there, so a fit that meets them is not touched
 CONSTRAINTS = (EnergyRising, RestStability)
 

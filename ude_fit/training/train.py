@@ -1,33 +1,25 @@
-"""Training the correction of a UDE: pure loss functions and the optimiser loop.
+"""Training the correction of a UDE: the stages and the optimiser loop.
 
-The stages, in the order :func:`train_ude` runs them:
+The stages, in the order :func:`train_ude` runs them (losses in :mod:`.losses`):
 
 * ``equation``: the correction against the residual force the mechanistic model
   leaves on every sample of the averaged orbits (no simulation; a fast start).
 * ``trajectory`` (the paper's): integrate the UDE over one period from each
-  measured initial state (diffrax, classical RK4 steps, checkpointed reverse mode)
-  and compare the states at the measured phases.
-* ``periodic`` (beyond the paper): every orbit gets its own initial state and,
-  for the autonomous aerofoil, its own period as unknowns; the loss asks for a
-  *closed* model orbit that matches the measured one, with the stability the
-  data says it has. Stability enters through the sign of the characteristic
-  polynomial of the monodromy matrix at 1 (for the aerofoil with its trivial
-  multiplier factored out), which changes sign exactly when a real multiplier
-  crosses 1, as it does at a fold: smooth and with no eigen-decomposition.
+  measured initial state and compare the states at the measured phases.
+* ``periodic`` (beyond the paper): closed model orbits through the measured ones, with
+  the stability the data says they have.
 * ``constraints`` (aerofoil, ``constraint_rounds`` > 0): where the periodic fit breaks
   the energy-rising or rest-stability condition, training goes on with the broken penalty
-  weighted from the data's misfit, raised each round while it is still broken
-  (:func:`_enforce`); a fit that meets both is not touched.
+  weighted from the data's misfit (:func:`.rounds.enforce_constraints`); a fit that meets
+  both is not touched.
 * ``branch`` (aerofoil, ``branch_rounds`` > 0, experimental): the measured orbits asked to
-  lie on the branch from the Hopf point, traced in amplitude, with one turn at most
-  (:mod:`.branch`, :func:`_branch_rounds`).
+  lie on the branch from the Hopf point (:func:`.rounds.follow_branch`).
 
-Optimisation: Adam, then L-BFGS (optax), all float64. Losses are module-level
-functions of (trainable, static, data), compiled once per problem structure.
-:func:`train_ensemble` trains many random starts at once, vmapped (:mod:`.optimise`).
+Optimisation: Adam, then L-BFGS (optax), all float64. :func:`train_ensemble` trains many
+random starts at once, vmapped (:mod:`.optimise`). :func:`refine_mechanistic` is the
+mechanistic model's output-error identification on the same periodic objective.
 """
 from __future__ import annotations
-
 
 import equinox as eqx
 import jax
@@ -38,14 +30,14 @@ from .._precision import require_float64
 from ..models.amplitude import RestLinear, SizeBasis, amplitude_correction, resolve
 from ..models.corrections import (MLPCorrection, PolynomialParamCorrection,
                                   RestFreeCorrection, Scaling, feature_scaling)
-from ..models.flow import diffrax_samples, rk4_orbit
 from ..models.ude import UDE
+from .amplitude_start import start_amplitude
 from .identify import TrainingData, residual_forces
+from .losses import equation_loss, periodic_loss, periodic_objective, trajectory_loss
 from .optimise import Diverged, descend, lane_of, minimize
 from .options import TrainConfig
-from .penalties import constraints_for, penalty_sum, regularity_points
-from .amplitude_start import start_amplitude
-from .branch import BranchData, branch_terms, trace_branch
+from .penalties import regularity_points
+from .rounds import enforce_constraints, follow_branch
 
 
 def _trainable_spec(correction):
@@ -76,235 +68,6 @@ def new_correction(model: UDE, data: TrainingData, key, cfg: TrainConfig):
     return RestFreeCorrection(inner, model.mech.n_dof) if cfg.rest_free else inner
 
 
-# ---------------------------------------------------------------------------------------
-# losses
-# ---------------------------------------------------------------------------------------
-
-def equation_loss(params, static, mech, Z, R, penalties=(), reg=None):
-    """The correction against the residual forces R at the features Z, plus the penalties
-    that act in the equation stage."""
-    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
-    corr = model.correction
-    pred = jax.vmap(corr)(Z)
-    loss = jnp.mean(((pred - R) / corr.scaling.out_scale) ** 2)
-    return loss + penalty_sum(penalties, "equation", model, reg)
-
-
-def _simulate_with_monodromy(model, y0, T, drive, n, sub):
-    """One pass of forward-mode autodiff: end state, samples and the monodromy matrix
-    (the tangent integration rides along with the primal one, so the orbit is
-    integrated once)."""
-    def flow(y):
-        yT, ys = rk4_orbit(model, y, T, drive, n * sub)
-        return yT, (yT, ys)
-    M, (yT, ys) = jax.jacfwd(flow, has_aux=True)(y0)
-    return yT, ys[::sub], M
-
-
-def trajectory_loss(params, static, mech, data: TrainingData, sub: int, penalties=(),
-                    reg=None):
-    """One-period trajectories from the measured states against the measured orbits (the
-    paper's loss), plus the penalties that act in the trajectory stage."""
-    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
-    return (_trajectory_error(model, data, sub)
-            + penalty_sum(penalties, "trajectory", model, reg))
-
-
-def _trajectory_error(model, data: TrainingData, sub: int):
-    n = data.ys.shape[1]
-
-    def one(ys, T, drive):
-        sim = diffrax_samples(model, ys[0], T, drive, n, sub)
-        return jnp.mean(((sim - ys) / data.y_scale) ** 2)
-
-    return jnp.mean(jax.vmap(one)(data.ys, data.period, data.drive))
-
-
-def _periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
-    """Closed model orbits through the measured ones, with the measured stability."""
-    w_close, w_stab, margin = cfg.closure_weight, cfg.stability_weight, cfg.stability_margin
-    sub = cfg.substeps
-    n = data.ys.shape[1]
-    autonomous = model.mech.autonomous
-
-    def one(ys, y0, T, drive, label):
-        if autonomous:
-            # an imposed input (the holding control, when given) is periodic in the
-            # orbit's own period, which is an unknown here
-            drive = eqx.tree_at(lambda d: d.omega, drive, 2.0 * jnp.pi / T)
-        yT, sim, M = _simulate_with_monodromy(model, y0, T, drive, n, sub)
-        s = model.mech.stability_indicator(M)
-        fit = jnp.mean(((sim - ys) / data.y_scale) ** 2)
-        close = jnp.sum(((yT - y0) / data.y_scale) ** 2)
-        stab = jnp.where(label == 0, 0.0, jax.nn.relu(margin - label * s) ** 2)
-        return fit + w_close * close + w_stab * stab
-
-    y0 = data.ys[:, 0, :] + params["dy0"] * data.y_scale
-    T = data.period * (1.0 + params["dT"]) if autonomous else data.period
-    return jnp.mean(jax.vmap(one)(data.ys, y0, T, data.drive, data.label))
-
-
-def constrained_periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig,
-                              reg, constraints, weights):
-    """The periodic loss plus the broken constraints' penalties at ``weights`` (an array,
-    so that raising them needs no new compilation)."""
-    # resolved once: for the amplitude form resolving is a Newton solve
-    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
-    extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
-    return _periodic_loss_of(model, params, data, cfg, reg) + extra
-
-
-@eqx.filter_jit
-def _misfit_and_constraints(params, static, mech, data, cfg, reg, constraints):
-    """The periodic objective without penalties, and every constraint's penalty."""
-    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
-    return (_periodic_objective(model, params, data, cfg),
-            jnp.stack([c.value(model, reg) for c in constraints]))
-
-
-def _enforce(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, loss,
-             progress=None):
-    """Constraints instead of weights (aerofoil, after periodic training). Where the trained
-    model breaks one of :data:`~.penalties.CONSTRAINTS` (its penalty above its tolerance),
-    training goes on with that penalty added at the weight that makes it count as much as
-    the data's misfit at that moment, then ten times more each round while it is still
-    broken, for at most ``cfg.constraint_rounds`` rounds. The weight is the data's own
-    business, not the user's: a model that meets every constraint is left exactly as it
-    was, so data whose fit already has the physics' picture is not touched.
-
-    Returns (params, loss, failed, info): ``descend``'s first three, and info's scalars:
-    rounds trained, whether every constraint is met at the end, each constraint's final
-    value and weight."""
-    constraints = constraints_for(cfg)
-    tolerance = np.array([c.tolerance for c in constraints])
-    measure = lambda p: _misfit_and_constraints(p, static, mech, data, cfg, reg, constraints)
-    weights = np.zeros(len(constraints))
-    rounds, failed = 0, {}
-    while True:
-        misfit, values = (np.asarray(x, float) for x in measure(params))
-        broken = values > tolerance
-        if not broken.any() or rounds == cfg.constraint_rounds:
-            break
-        with np.errstate(divide="ignore"):
-            first = misfit / values              # where broken, values > 0
-        weights = np.where(broken, np.maximum(10.0 * weights, first), weights)
-        rounds += 1
-        params, loss, failed = descend(
-            constrained_periodic_loss, params,
-            (static, mech, data, cfg, reg, constraints, jnp.asarray(weights)), lanes=None,
-            adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps, lr=cfg.learning_rate,
-            progress=progress, stage=f"constraints, round {rounds}")
-        if failed:
-            return params, loss, failed, {"constraint_rounds": rounds}
-    info = {"constraint_rounds": rounds, "constraints_met": bool(not broken.any())}
-    for c, v, w in zip(constraints, values, weights):
-        info[f"{c.option}_value"] = float(v)
-        info[f"{c.option}_weight"] = float(w)
-    return params, loss, failed, info
-
-
-def branch_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, constraints,
-                weights, trace, points, w_branch):
-    """The constrained periodic loss plus the branch term (:mod:`.branch`) at ``w_branch``."""
-    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
-    extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
-    terms = branch_terms(model, trace, *points)
-    return _periodic_loss_of(model, params, data, cfg, reg) + extra + w_branch * sum(terms)
-
-
-@eqx.filter_jit
-def _branch_terms_now(params, static, mech, trace, points):
-    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
-    return jnp.stack(branch_terms(model, trace, *points))
-
-
-def _branch_rounds(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, loss,
-                   enforced, progress=None):
-    """Training on with the branch term (:mod:`.branch`): trace the branch from the Hopf
-    point in amplitude, train with its linearised airspeeds, trace again, for at most
-    ``cfg.branch_rounds`` rounds. The term's weight makes it count as much as the data's
-    misfit in the first round, ten times more each round while its hinges (stability slopes,
-    one turn, reach) are broken. A round whose result is worse by the traced (not linearised)
-    branch than its start did not stay where the linearisation holds: it is undone and tried
-    again with half the steps, at most three times, and then the rounds end.
-
-    Returns (params, loss, failed, info); info's scalars: rounds kept, why they stopped
-    early, the final trace's terms, grid points solved, share of points out of reach, and
-    the term's weight. (Experimental, off by default: docs/fitting.md.)"""
-    constraints = constraints_for(cfg)
-    weights = jnp.asarray([enforced.get(f"{c.option}_weight", 0.0) for c in constraints])
-    bd = BranchData.of(data)
-    P = bd.V
-    v_span = max(float(np.ptp(P)), 0.1 * float(P.max()))
-    points = (jnp.asarray(bd.V), jnp.asarray(bd.label), v_span, float(bd.amps.max()))
-    n = data.ys.shape[1] * cfg.substeps
-
-    def state(p):
-        model = resolve(UDE(mech, eqx.combine(p["corr"], static)))
-        got = trace_branch(model, bd, n)
-        misfit = float(np.asarray(_periodic_objective(model, p, data, cfg)))
-        if got is None:
-            return None, None, misfit, 0, 1.0
-        trace, solved = got
-        terms = np.asarray(_branch_terms_now(p, static, mech, trace, points))
-        # points beyond the branch's reach count as missed by the whole airspeed span
-        unreached = float(np.sum(1.0 - np.asarray(trace.reach))) / len(bd.V)
-        return trace, terms, misfit, solved, unreached
-
-    w_b, failed, info = 0.0, {}, {"branch_rounds": 0}
-    got = state(params)
-    for rnd in range(1, cfg.branch_rounds + 1):
-        trace, terms, misfit, solved, unreached = got
-        if trace is None:
-            info["branch_stop"] = "no branch from a Hopf point"
-            break
-        total = float(terms.sum())
-        if total <= 0 and unreached == 0:
-            break
-        hinges = float(np.sum(terms[1:] > 1e-12)) + unreached     # (rounding is not broken)
-        w_b = misfit / max(total + unreached, 1e-12) if rnd == 1 else (10.0 * w_b if hinges > 0 else w_b)
-        before = misfit + w_b * (total + unreached)
-        # a trust region by the number of steps: a round the traced branch says is worse
-        # is undone and tried again with half the steps, at most three times
-        for shrink in (1, 2, 4, 8):
-            new, new_loss, failed = descend(
-                branch_loss, params,
-                (static, mech, data, cfg, reg, constraints, weights, trace, points,
-                 jnp.asarray(w_b)), lanes=None,
-                adam_steps=cfg.adam_steps // shrink, lbfgs_steps=cfg.lbfgs_steps // shrink,
-                lr=cfg.learning_rate, progress=progress, stage=f"branch, round {rnd}")
-            cand = None if failed else state(new)
-            after = (np.inf if cand is None or cand[0] is None else
-                     cand[2] + w_b * (float(cand[1].sum()) + cand[4]))
-            failed = {}
-            if after <= before:
-                break
-        if not after <= before:
-            info["branch_stop"] = f"round {rnd} undone at every step count"
-            break
-        params, loss, got = new, new_loss, cand
-        info["branch_rounds"] = rnd
-    if got[0] is not None:
-        trace, terms, misfit, solved, unreached = got
-        info.update({f"branch_{name}": float(v) for name, v in
-                     zip(("point", "stability", "one_turn", "reach"), terms)})
-        info.update(branch_solved=int(solved), branch_unreached=float(unreached),
-                    branch_weight=float(w_b))
-    return params, loss, failed, info
-
-
-def periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg=None):
-    """Closed model orbits through the measured ones with the measured stability, plus the
-    penalties that act in the periodic stage."""
-    return _periodic_loss_of(resolve(UDE(mech, eqx.combine(params["corr"], static))),
-                             params, data, cfg, reg)
-
-
-def _periodic_loss_of(model, params, data: TrainingData, cfg: TrainConfig, reg):
-    return (_periodic_objective(model, params, data, cfg)
-            + penalty_sum(cfg.penalties, "periodic", model, reg))
-
-
 def _mech_leaves(mech):
     """The fitted parameters of a mechanistic model as a tuple of arrays: the base
     model's fitted fields, then each added effect's coefficient vector."""
@@ -325,7 +88,7 @@ def _mech_with(mech, sizes, base, scale, delta):
 
 def _mech_periodic_loss(params, mech, sizes, base, scale, data, cfg):
     model = UDE(_mech_with(mech, sizes, base, scale, params["delta"]))
-    return _periodic_objective(model, params, data, cfg)
+    return periodic_objective(model, params, data, cfg)
 
 
 def refine_mechanistic(model: UDE, data: TrainingData, *, cfg: TrainConfig, progress=None):
@@ -417,12 +180,12 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
     if training == "periodic" and cfg.constraint_rounds and not failed:
         if ensemble:    # FitOptions refuses the pair: the rounds differ from start to start
             raise ValueError("constraint rounds need the starts trained one at a time")
-        params, loss, failed, enforced = _enforce(params, static, mech, data, cfg, reg, loss,
+        params, loss, failed, enforced = enforce_constraints(params, static, mech, data, cfg, reg, loss,
                                                   progress)
     if training == "periodic" and cfg.branch_rounds and not failed:
         if ensemble:
             raise ValueError("branch rounds need the starts trained one at a time")
-        params, loss, failed, more = _branch_rounds(params, static, mech, data, cfg, reg, loss,
+        params, loss, failed, more = follow_branch(params, static, mech, data, cfg, reg, loss,
                                                     enforced, progress)
         enforced = {**enforced, **more}
     out = []

@@ -1,0 +1,122 @@
+"""The losses a UDE's correction is trained on: pure functions of (trainable, static, data),
+compiled once per problem structure.
+
+* :func:`equation_loss`: the correction against the residual force the mechanistic model
+  leaves on every sample of the averaged orbits (no simulation).
+* :func:`trajectory_loss` (the paper's): one-period trajectories from the measured states.
+* :func:`periodic_loss`: closed model orbits through the measured ones, each with its own
+  initial state and (aerofoil) period as unknowns, with the stability the data says; stability
+  enters through the sign of the characteristic polynomial of the monodromy matrix at 1 (the
+  aerofoil's trivial multiplier factored out), which changes sign exactly where a real
+  multiplier crosses 1, as at a fold: smooth and with no eigen-decomposition.
+* :func:`constrained_periodic_loss` and :func:`branch_loss`: the periodic loss with the
+  terms of the constraint and branch rounds (:mod:`.rounds`).
+"""
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..models.amplitude import resolve
+from ..models.flow import diffrax_samples, rk4_orbit
+from ..models.ude import UDE
+from .branch import branch_terms
+from .identify import TrainingData
+from .options import TrainConfig
+from .penalties import penalty_sum
+
+
+def equation_loss(params, static, mech, Z, R, penalties=(), reg=None):
+    """The correction against the residual forces R at the features Z, plus the penalties
+    that act in the equation stage."""
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    corr = model.correction
+    pred = jax.vmap(corr)(Z)
+    loss = jnp.mean(((pred - R) / corr.scaling.out_scale) ** 2)
+    return loss + penalty_sum(penalties, "equation", model, reg)
+
+
+def _simulate_with_monodromy(model, y0, T, drive, n, sub):
+    """One pass of forward-mode autodiff: end state, samples and the monodromy matrix
+    (the tangent integration rides along with the primal one, so the orbit is
+    integrated once)."""
+    def flow(y):
+        yT, ys = rk4_orbit(model, y, T, drive, n * sub)
+        return yT, (yT, ys)
+    M, (yT, ys) = jax.jacfwd(flow, has_aux=True)(y0)
+    return yT, ys[::sub], M
+
+
+def trajectory_loss(params, static, mech, data: TrainingData, sub: int, penalties=(),
+                    reg=None):
+    """One-period trajectories from the measured states against the measured orbits (the
+    paper's loss), plus the penalties that act in the trajectory stage."""
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    return (_trajectory_error(model, data, sub)
+            + penalty_sum(penalties, "trajectory", model, reg))
+
+
+def _trajectory_error(model, data: TrainingData, sub: int):
+    n = data.ys.shape[1]
+
+    def one(ys, T, drive):
+        sim = diffrax_samples(model, ys[0], T, drive, n, sub)
+        return jnp.mean(((sim - ys) / data.y_scale) ** 2)
+
+    return jnp.mean(jax.vmap(one)(data.ys, data.period, data.drive))
+
+
+def periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
+    """Closed model orbits through the measured ones, with the measured stability."""
+    w_close, w_stab, margin = cfg.closure_weight, cfg.stability_weight, cfg.stability_margin
+    sub = cfg.substeps
+    n = data.ys.shape[1]
+    autonomous = model.mech.autonomous
+
+    def one(ys, y0, T, drive, label):
+        if autonomous:
+            # an imposed input (the holding control, when given) is periodic in the
+            # orbit's own period, which is an unknown here
+            drive = eqx.tree_at(lambda d: d.omega, drive, 2.0 * jnp.pi / T)
+        yT, sim, M = _simulate_with_monodromy(model, y0, T, drive, n, sub)
+        s = model.mech.stability_indicator(M)
+        fit = jnp.mean(((sim - ys) / data.y_scale) ** 2)
+        close = jnp.sum(((yT - y0) / data.y_scale) ** 2)
+        stab = jnp.where(label == 0, 0.0, jax.nn.relu(margin - label * s) ** 2)
+        return fit + w_close * close + w_stab * stab
+
+    y0 = data.ys[:, 0, :] + params["dy0"] * data.y_scale
+    T = data.period * (1.0 + params["dT"]) if autonomous else data.period
+    return jnp.mean(jax.vmap(one)(data.ys, y0, T, data.drive, data.label))
+
+
+def constrained_periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig,
+                              reg, constraints, weights):
+    """The periodic loss plus the broken constraints' penalties at ``weights`` (an array,
+    so that raising them needs no new compilation)."""
+    # resolved once: for the amplitude form resolving is a Newton solve
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
+    return periodic_loss_of(model, params, data, cfg, reg) + extra
+
+
+def branch_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, constraints,
+                weights, trace, points, w_branch):
+    """The constrained periodic loss plus the branch term (:mod:`.branch`) at ``w_branch``."""
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
+    terms = branch_terms(model, trace, *points)
+    return periodic_loss_of(model, params, data, cfg, reg) + extra + w_branch * sum(terms)
+
+
+def periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg=None):
+    """Closed model orbits through the measured ones with the measured stability, plus the
+    penalties that act in the periodic stage."""
+    return periodic_loss_of(resolve(UDE(mech, eqx.combine(params["corr"], static))),
+                             params, data, cfg, reg)
+
+
+def periodic_loss_of(model, params, data: TrainingData, cfg: TrainConfig, reg):
+    return (periodic_objective(model, params, data, cfg)
+            + penalty_sum(cfg.penalties, "periodic", model, reg))

@@ -1,0 +1,156 @@
+"""Training rounds after the periodic stage (aerofoil, periodic training, one start at a
+time): each traces or measures the trained model, sets a term's weight from the data's misfit,
+and trains on.
+
+* :func:`enforce_constraints` (``constraint_rounds``): the energy-rising and rest-stability
+  conditions (:data:`~.penalties.CONSTRAINTS`) where the fit breaks them.
+* :func:`follow_branch` (``branch_rounds``, experimental): the measured orbits on the branch
+  from the Hopf point, traced in amplitude, with one turn at most (:mod:`.branch`).
+"""
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ..models.amplitude import resolve
+from ..models.ude import UDE
+from .branch import BranchData, branch_terms, trace_branch
+from .identify import TrainingData
+from .losses import branch_loss, constrained_periodic_loss, periodic_objective
+from .optimise import descend
+from .options import TrainConfig
+from .penalties import constraints_for
+
+
+@eqx.filter_jit
+def _misfit_and_constraints(params, static, mech, data, cfg, reg, constraints):
+    """The periodic objective without penalties, and every constraint's penalty."""
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    return (periodic_objective(model, params, data, cfg),
+            jnp.stack([c.value(model, reg) for c in constraints]))
+
+
+def enforce_constraints(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, loss,
+             progress=None):
+    """Constraints instead of weights (aerofoil, after periodic training). Where the trained
+    model breaks one of :data:`~.penalties.CONSTRAINTS` (its penalty above its tolerance),
+    training goes on with that penalty added at the weight that makes it count as much as
+    the data's misfit at that moment, then ten times more each round while it is still
+    broken, for at most ``cfg.constraint_rounds`` rounds. The weight is the data's own
+    business, not the user's: a model that meets every constraint is left exactly as it
+    was, so data whose fit already has the physics' picture is not touched.
+
+    Returns (params, loss, failed, info): ``descend``'s first three, and info's scalars:
+    rounds trained, whether every constraint is met at the end, each constraint's final
+    value and weight."""
+    constraints = constraints_for(cfg)
+    tolerance = np.array([c.tolerance for c in constraints])
+    measure = lambda p: _misfit_and_constraints(p, static, mech, data, cfg, reg, constraints)
+    weights = np.zeros(len(constraints))
+    rounds, failed = 0, {}
+    while True:
+        misfit, values = (np.asarray(x, float) for x in measure(params))
+        broken = values > tolerance
+        if not broken.any() or rounds == cfg.constraint_rounds:
+            break
+        with np.errstate(divide="ignore"):
+            first = misfit / values              # where broken, values > 0
+        weights = np.where(broken, np.maximum(10.0 * weights, first), weights)
+        rounds += 1
+        params, loss, failed = descend(
+            constrained_periodic_loss, params,
+            (static, mech, data, cfg, reg, constraints, jnp.asarray(weights)), lanes=None,
+            adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps, lr=cfg.learning_rate,
+            progress=progress, stage=f"constraints, round {rounds}")
+        if failed:
+            return params, loss, failed, {"constraint_rounds": rounds}
+    info = {"constraint_rounds": rounds, "constraints_met": bool(not broken.any())}
+    for c, v, w in zip(constraints, values, weights):
+        info[f"{c.option}_value"] = float(v)
+        info[f"{c.option}_weight"] = float(w)
+    return params, loss, failed, info
+
+
+@eqx.filter_jit
+def _branch_terms_now(params, static, mech, trace, points):
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    return jnp.stack(branch_terms(model, trace, *points))
+
+
+def follow_branch(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, loss,
+                   enforced, progress=None):
+    """Training on with the branch term (:mod:`.branch`): trace the branch from the Hopf
+    point in amplitude, train with its linearised airspeeds, trace again, for at most
+    ``cfg.branch_rounds`` rounds. The term's weight makes it count as much as the data's
+    misfit in the first round, ten times more each round while its hinges (stability slopes,
+    one turn, reach) are broken. A round whose result is worse by the traced (not linearised)
+    branch than its start did not stay where the linearisation holds: it is undone and tried
+    again with half the steps, at most three times, and then the rounds end.
+
+    Returns (params, loss, failed, info); info's scalars: rounds kept, why they stopped
+    early, the final trace's terms, grid points solved, share of points out of reach, and
+    the term's weight. (Experimental, off by default: docs/fitting.md.)"""
+    constraints = constraints_for(cfg)
+    weights = jnp.asarray([enforced.get(f"{c.option}_weight", 0.0) for c in constraints])
+    bd = BranchData.of(data)
+    P = bd.V
+    v_span = max(float(np.ptp(P)), 0.1 * float(P.max()))
+    points = (jnp.asarray(bd.V), jnp.asarray(bd.label), v_span, float(bd.amps.max()))
+    n = data.ys.shape[1] * cfg.substeps
+
+    def state(p):
+        model = resolve(UDE(mech, eqx.combine(p["corr"], static)))
+        got = trace_branch(model, bd, n)
+        misfit = float(np.asarray(periodic_objective(model, p, data, cfg)))
+        if got is None:
+            return None, None, misfit, 0, 1.0
+        trace, solved = got
+        terms = np.asarray(_branch_terms_now(p, static, mech, trace, points))
+        # points beyond the branch's reach count as missed by the whole airspeed span
+        unreached = float(np.sum(1.0 - np.asarray(trace.reach))) / len(bd.V)
+        return trace, terms, misfit, solved, unreached
+
+    w_b, failed, info = 0.0, {}, {"branch_rounds": 0}
+    got = state(params)
+    for rnd in range(1, cfg.branch_rounds + 1):
+        trace, terms, misfit, solved, unreached = got
+        if trace is None:
+            info["branch_stop"] = "no branch from a Hopf point"
+            break
+        total = float(terms.sum())
+        if total <= 0 and unreached == 0:
+            break
+        hinges = float(np.sum(terms[1:] > 1e-12)) + unreached     # (rounding is not broken)
+        if rnd == 1:
+            w_b = misfit / max(total + unreached, 1e-12)
+        elif hinges > 0:
+            w_b = 10.0 * w_b
+        before = misfit + w_b * (total + unreached)
+        # a trust region by the number of steps: a round the traced branch says is worse
+        # is undone and tried again with half the steps, at most three times
+        for shrink in (1, 2, 4, 8):
+            new, new_loss, failed = descend(
+                branch_loss, params,
+                (static, mech, data, cfg, reg, constraints, weights, trace, points,
+                 jnp.asarray(w_b)), lanes=None,
+                adam_steps=cfg.adam_steps // shrink, lbfgs_steps=cfg.lbfgs_steps // shrink,
+                lr=cfg.learning_rate, progress=progress, stage=f"branch, round {rnd}")
+            cand = None if failed else state(new)
+            after = (np.inf if cand is None or cand[0] is None else
+                     cand[2] + w_b * (float(cand[1].sum()) + cand[4]))
+            failed = {}
+            if after <= before:
+                break
+        if not after <= before:
+            info["branch_stop"] = f"round {rnd} undone at every step count"
+            break
+        params, loss, got = new, new_loss, cand
+        info["branch_rounds"] = rnd
+    if got[0] is not None:
+        trace, terms, misfit, solved, unreached = got
+        info.update({f"branch_{name}": float(v) for name, v in
+                     zip(("point", "stability", "one_turn", "reach"), terms)})
+        info.update(branch_solved=int(solved), branch_unreached=float(unreached),
+                    branch_weight=float(w_b))
+    return params, loss, failed, info
