@@ -133,6 +133,11 @@ def add_fit_arguments(p) -> None:
                    "measured orbits asked to lie on the branch from the Hopf point, traced "
                    "in amplitude, with the slope their stability implies and one turn at "
                    "most (docs/fitting.md; default 0)")
+    p.add_argument("--amplitude-stages", action="store_true",
+                   help="aerofoil, periodic training: train on the smallest orbit first, then "
+                   "add the orbits one at a time in order of amplitude, as continuation from "
+                   "the Hopf point meets them, before the stage on all of them "
+                   "(experimental; docs/fitting.md)")
     p.add_argument("--control-input", action="store_true",
                    help="aerofoil: the recorded holding control as a known force on heave, "
                    "so a point held with some control is fitted as an orbit of the "
@@ -176,4 +181,5 @@ def fit_options(args):
                           form=args.correction_form,
                           constraint_rounds=args.constraint_rounds,
                           branch_rounds=args.branch_rounds,
+                          amplitude_stages=args.amplitude_stages,
                           penalties=tuple(p for p in penalties if p.weight)))

@@ -105,6 +105,23 @@ class BranchData:
                    np.asarray(data.y_scale, float) * np.sqrt(2.0), grid)
 
 
+def amplitude_stages(data) -> list[np.ndarray]:
+    """Masks over the orbits for a periodic training that grows with the branch: the
+    smallest orbit alone, then one more at a time in order of first-harmonic heave
+    amplitude, up to all but the largest (the stage on every orbit follows). Along the
+    branch born at a Hopf point the amplitude grows from zero, through the fold if there is
+    one, so each stage asks the branch already fitted to reach one orbit further, instead
+    of asking the network for every orbit at once (which it can meet on an isola apart from
+    the branch from the Hopf point)."""
+    order = np.argsort(BranchData.of(data).amps, kind="stable")
+    masks = []
+    for k in range(1, len(order)):
+        m = np.zeros(len(order), bool)
+        m[order[:k]] = True
+        masks.append(m)
+    return masks
+
+
 def _newton(model, u, A, su, n, maxit=12, tol=1e-10):
     for _ in range(maxit):
         J, r = (np.asarray(x) for x in _residual_and_jacobian(model, jnp.asarray(u), A,

@@ -39,10 +39,26 @@ class TrainingData(eqx.Module):
     label: jax.Array     # (n_orbits,) +1 stable, -1 unstable, 0 unknown
     y_scale: jax.Array   # (n_state,) RMS of each state over the data
     amp_max: float = eqx.field(static=True)
+    # (n_orbits,) each orbit's weight in the periodic objective; None: all alike
+    weight: jax.Array | None = None
 
     @property
     def n_orbits(self) -> int:
         return int(self.ys.shape[0])
+
+    def only(self, active) -> "TrainingData":
+        """The orbits where ``active`` (a boolean mask) at weight 1, every other at weight 0
+        with the first active orbit standing in its place. The shapes stay, so the compiled
+        loss serves every subset, and no orbit the model cannot yet follow is simulated (a
+        weight of 0 does not stop a non-finite orbit from making the gradient non-finite)."""
+        active = np.asarray(active, bool)
+        if active.shape != (self.n_orbits,) or not active.any():
+            raise ValueError("only: a mask over the orbits with at least one orbit in it")
+        idx = np.where(active, np.arange(self.n_orbits), np.flatnonzero(active)[0])
+        take = lambda x: x[idx]
+        return TrainingData(take(self.ys), take(self.qdd), take(self.period),
+                            jax.tree_util.tree_map(take, self.drive), take(self.label),
+                            self.y_scale, self.amp_max, jnp.asarray(active, float))
 
 
 def training_data(ds, n: int = 32) -> TrainingData:

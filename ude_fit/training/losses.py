@@ -88,7 +88,10 @@ def periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
 
     y0 = data.ys[:, 0, :] + params["dy0"] * data.y_scale
     T = data.period * (1.0 + params["dT"]) if autonomous else data.period
-    return jnp.mean(jax.vmap(one)(data.ys, y0, T, data.drive, data.label))
+    per = jax.vmap(one)(data.ys, y0, T, data.drive, data.label)
+    if data.weight is None:
+        return jnp.mean(per)
+    return jnp.sum(data.weight * per) / jnp.sum(data.weight)
 
 
 def constrained_periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig,

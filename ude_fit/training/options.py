@@ -62,6 +62,10 @@ class TrainConfig:
     # aerofoil, periodic training: rounds of training on with the measured orbits asked to
     # lie on the branch from the Hopf point, one turn at most (training.branch; 0: none)
     branch_rounds: int = 0
+    # aerofoil, periodic training: before the periodic stage on every orbit, stages on the
+    # smallest orbit alone, then one more at a time in order of amplitude
+    # (training.branch.amplitude_stages)
+    amplitude_stages: bool = False
 
     def __post_init__(self):
         for name in ("width", "depth"):
@@ -90,8 +94,9 @@ class TrainConfig:
         if self.form == "amplitude" and (self.rest_free or self.param_dependence != "input"):
             raise ValueError("--correction-form amplitude has its own linear terms and no "
                              "network: not with --rest-free or --param-dependence polynomial")
-        if not isinstance(self.rest_free, bool):
-            raise ValueError(f"rest_free must be True or False, not {self.rest_free!r}")
+        for name in ("rest_free", "amplitude_stages"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be True or False, not {getattr(self, name)!r}")
         object.__setattr__(self, "penalties", tuple(self.penalties))
         kinds = [type(p) for p in self.penalties]
         for p in self.penalties:
@@ -216,6 +221,10 @@ class FitOptions:
         if not system_kind(self.system).autonomous and self.train.rest_free:
             raise ValueError("--rest-free applies to --system flutter only (a forced "
                              "system has no equilibrium at rest)")
+        if self.train.amplitude_stages and (not system_kind(self.system).autonomous
+                                            or self.training != "periodic"):
+            raise ValueError("--amplitude-stages applies to --system flutter with --training "
+                             "periodic only (the orbits of a branch from a Hopf point)")
         if not system_kind(self.system).autonomous and self.train.form == "amplitude":
             raise ValueError("--correction-form amplitude applies to --system flutter only "
                              "(a self-excited system's orbit sizes)")
@@ -259,6 +268,8 @@ class FitOptions:
                 nn_only.append("--constraint-rounds")
             if self.train.branch_rounds:
                 nn_only.append("--branch-rounds")
+            if self.train.amplitude_stages:
+                nn_only.append("--amplitude-stages")
             if self.train.param_scale != 1.0:
                 nn_only.append("--param-scale")
             if self.train.form != "network":

@@ -32,6 +32,7 @@ from ..models.corrections import (MLPCorrection, PolynomialParamCorrection,
                                   RestFreeCorrection, Scaling, feature_scaling)
 from ..models.ude import UDE
 from .amplitude_start import start_amplitude
+from .branch import amplitude_stages
 from .identify import TrainingData, residual_forces
 from .losses import equation_loss, periodic_loss, periodic_objective, trajectory_loss
 from .optimise import Diverged, descend, lane_of, minimize
@@ -172,6 +173,14 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
         params = {"corr": params["corr"], "dy0": jnp.zeros(lead + data.ys[:, 0, :].shape)}
         if model.mech.autonomous:
             params["dT"] = jnp.zeros(lead + data.period.shape)
+        # the orbits one at a time in order of amplitude first, as continuation from the
+        # Hopf point meets them (half the steps each), then all of them
+        for active in (amplitude_stages(data) if cfg.amplitude_stages else ()):
+            params, loss, failed = descend(
+                periodic_loss, params, (static, mech, data.only(active), cfg, reg),
+                lanes=lanes, adam_steps=cfg.adam_steps // 2, lbfgs_steps=cfg.lbfgs_steps // 2,
+                lr=cfg.learning_rate, failed=failed, progress=progress,
+                stage=f"periodic, {int(active.sum())} smallest orbits")
         params, loss, failed = descend(
             periodic_loss, params, (static, mech, data, cfg, reg), lanes=lanes,
             adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps, lr=cfg.learning_rate,
