@@ -24,14 +24,16 @@ def _weights(model: UDE) -> list[np.ndarray]:
         eqx.filter(model.correction, eqx.is_inexact_array))]
 
 
-def test_ensemble_start_k_is_the_single_start_with_key_k(tmp_path):
-    # the default (periodic) training: both stages, L-BFGS line searches, per-orbit unknowns
+@pytest.mark.parametrize("stages", [False, True])
+def test_ensemble_start_k_is_the_single_start_with_key_k(tmp_path, stages):
+    # the default (periodic) training: both stages, L-BFGS line searches, per-orbit unknowns;
+    # and with --amplitude-stages (the orbits added one at a time, shared by every start)
     training = "periodic"
     write_truth_campaign(tmp_path / "f.h5", "flutter", airspeeds=(18.0, 21.0, 23.6))
     data = training_data(load([tmp_path / "f.h5"], "flutter"), n=16)
     mech, _ = identify(data, "flutter")
     cfg = TrainConfig(width=4, equation_steps=50, equation_lbfgs_steps=5, adam_steps=25,
-                      lbfgs_steps=5)
+                      lbfgs_steps=5, amplitude_stages=stages)
     keys = jax.random.split(jax.random.PRNGKey(3), 3)
     together = train_ensemble(UDE(mech), data, keys=keys, cfg=cfg, training=training)
     assert len(together) == 3
