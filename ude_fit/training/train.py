@@ -7,7 +7,9 @@ The stages, in the order :func:`train_ude` runs them (losses in :mod:`.losses`):
 * ``trajectory`` (the paper's): integrate the UDE over one period from each
   measured initial state and compare the states at the measured phases.
 * ``periodic`` (beyond the paper): closed model orbits through the measured ones, with
-  the stability the data says they have.
+  the stability the data says they have; with ``amplitude_stages`` (aerofoil,
+  experimental) first on the smallest orbit, then one orbit more per stage in order of
+  amplitude (:func:`.branch.amplitude_stages`).
 * ``constraints`` (aerofoil, ``constraint_rounds`` > 0): where the periodic fit breaks
   the energy-rising or rest-stability condition, training goes on with the broken penalty
   weighted from the data's misfit (:func:`.rounds.enforce_constraints`); a fit that meets
