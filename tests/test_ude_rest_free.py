@@ -9,6 +9,7 @@ import pytest
 
 from ude_fit.analysis.continuation import hopf_point
 from ude_fit.model_file import load_model, save_model
+from ude_fit.models.flow import rk4_orbit
 from ude_fit.models.corrections import MLPCorrection, RestFreeCorrection, Scaling
 from ude_fit.models.mechanistic import Drive, FlutterQS
 from ude_fit.models.ude import UDE
@@ -41,6 +42,30 @@ def test_value_and_slope_at_rest_are_the_linear_terms_alone():
     # away from rest the network's nonlinear part is there
     y = jnp.array([0.02, 0.03, 0.3, 0.5, 22.0])
     assert np.abs(np.asarray(c(y) - c.linear_matrix(22.0) @ y[:4])).max() > 1e-3
+
+
+def test_fixed_at_one_airspeed_it_is_the_same_correction():
+    # an orbit's integration uses the correction with its rest terms computed once for the
+    # orbit's airspeed (UDE.at_drive): values, the orbit, and the orbit's derivatives in the
+    # airspeed (the continuation's shooting Jacobian) must be those of the full correction
+    c = RestFreeCorrection(_network(), 2, jnp.array(np.random.default_rng(1).normal(
+        size=(2, 2, 4))))
+    fixed = c.at_parameter(22.0)
+    for y in (jnp.zeros(4), jnp.array([0.02, 0.03, 0.3, 0.5]), jnp.array([-0.05, 0.1, 1.0, -2.0])):
+        z = jnp.concatenate([y, jnp.array([22.0])])
+        assert np.allclose(fixed(z), c(z), rtol=1e-12, atol=1e-12)
+    model = UDE(FlutterQS.nominal(), c)
+    y0 = jnp.array([0.01, 0.02, 0.0, 0.0])
+
+    def end(V, frozen):
+        # frozen: the integrator's path; else the full correction at every step
+        m = model if frozen else UDE(model.mech, lambda z: c(z))
+        return rk4_orbit(m, y0, 0.5, Drive.of(V), 64)[0]
+
+    assert np.allclose(end(22.0, True), end(22.0, False), rtol=1e-12, atol=1e-14)
+    dV = jax.jacfwd(lambda V: end(V, True))(22.0)
+    assert np.allclose(dV, jax.jacfwd(lambda V: end(V, False))(22.0), rtol=1e-10, atol=1e-14)
+    assert np.abs(np.asarray(dV)).max() > 1e-6
 
 
 def test_the_hopf_point_is_the_mechanistic_models_whatever_the_network():

@@ -140,8 +140,38 @@ class RestFreeCorrection(eqx.Module):
         return -(s.out_scale[:, None] * (self.linear[0] + self.linear[1] * ps)
                  / s.z_scale[None, :n])
 
+    def _rest_terms(self, p):
+        """What is subtracted at the parameter p: the network's value at rest and the
+        matrix (its Jacobian in y at rest less the explicit linear terms)."""
+        rest = jnp.zeros_like(self.scaling.z_mean).at[-1].set(p)
+        f0 = self.inner(rest)
+        n = 2 * self.n_dof
+        jac = jax.jacfwd(lambda y: self.inner(jnp.concatenate([y, rest[n:]])))(rest[:n])
+        return f0, jac - self.linear_matrix(p)
+
     def __call__(self, z):
         rest = z.at[:-1].set(0.0)
         # one forward-mode pass: the network at rest and its derivative along y
         f0, df = jax.jvp(self.inner, (rest,), (z.at[-1].set(0.0),))
         return self.inner(z) - f0 - df + self.linear_matrix(z[-1]) @ z[:-1]
+
+    def at_parameter(self, p) -> "RestFreeAtParameter":
+        """The same correction with the parameter fixed at p, its rest terms computed
+        once: an orbit's integration calls the correction at one airspeed hundreds of
+        times, and the terms at rest are most of each call's cost."""
+        return RestFreeAtParameter(self.inner, *self._rest_terms(p))
+
+
+class RestFreeAtParameter(eqx.Module):
+    """A :class:`RestFreeCorrection` at one parameter value (the one its rest terms were
+    computed at; the features' parameter must be that value)."""
+    inner: eqx.Module
+    offset: jax.Array              # N(0; p)
+    matrix: jax.Array              # J_y N(0; p) - L(p)
+
+    @property
+    def scaling(self) -> Scaling:
+        return self.inner.scaling
+
+    def __call__(self, z):
+        return self.inner(z) - self.offset - self.matrix @ z[:-1]

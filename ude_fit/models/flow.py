@@ -23,7 +23,7 @@ from .ude import UDE
 def rk4_orbit(model: UDE, y0, T, drive: Drive, n: int):
     """Integrate ``n`` RK4 steps over ``[0, T]``; returns (y(T), samples at t_j = j T / n)."""
     dt = T / n
-    f = model.vector_field
+    f = model.at_drive(drive).vector_field
 
     def step(y, j):
         t = j * dt
@@ -57,7 +57,8 @@ class ClassicalRK4(diffrax.AbstractERK):
 def diffrax_samples(model: UDE, y0, T, drive: Drive, n: int, sub: int):
     """States at t_j = j T / n, j = 0..n-1, integrated by diffrax with ``sub`` classical RK4
     steps between samples (reverse-mode differentiable, checkpointed)."""
-    term = diffrax.ODETerm(lambda t, y, args: model.vector_field(t, y, drive))
+    frozen = model.at_drive(drive)
+    term = diffrax.ODETerm(lambda t, y, args: frozen.vector_field(t, y, drive))
     ts = T * jnp.arange(n) / n
     sol = diffrax.diffeqsolve(term, ClassicalRK4(), t0=0.0, t1=ts[-1], dt0=T / (n * sub),
                               y0=y0, saveat=diffrax.SaveAt(ts=ts),

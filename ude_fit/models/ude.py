@@ -53,6 +53,15 @@ class UDE(eqx.Module):
             return jnp.concatenate([qd, qdd, self.mech.hidden_rate(q, qd, drive, z)])
         return jnp.concatenate([qd, qdd])
 
+    def at_drive(self, drive: Drive) -> "UDE":
+        """The same vector field for one drive, with whatever the correction computes
+        once per parameter value (``at_parameter``) done here, outside an integrator's
+        loop. Exact: the parameter is a constant of each orbit."""
+        freeze = getattr(self.correction, "at_parameter", None)
+        if freeze is None:
+            return self
+        return UDE(self.mech, freeze(self.mech.parameter_feature(drive)))
+
     def with_correction(self, correction) -> "UDE":
         return UDE(self.mech, correction)
 
