@@ -1,6 +1,8 @@
 """Amplitude stages (``--amplitude-stages``, training.branch.amplitude_stages): the periodic
-training first on the smallest orbit, then one more at a time in order of amplitude. Checked
-against the measured orbits' own amplitudes and against the objective on the subset alone."""
+training first on the orbit nearest the Hopf point, then one more at a time in the order a
+branch with one fold meets them (training.branch.branch_order). Checked against the measured
+orbits' own amplitudes, against a scattered campaign's airspeeds and against the objective
+on the subset alone."""
 
 import equinox as eqx
 import jax
@@ -11,7 +13,7 @@ import pytest
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import UDE, identify, load, training_data
 from ude_fit._fourier import amplitude
-from ude_fit.training.branch import amplitude_stages
+from ude_fit.training.branch import BranchData, amplitude_stages, branch_order
 from ude_fit.training.identify import TrainingData
 from ude_fit.training.losses import periodic_objective
 from ude_fit.training.options import FitOptions, TrainConfig
@@ -50,6 +52,25 @@ def test_the_stages_add_the_orbits_in_order_of_amplitude(problem):
         assert amps[m].max() < amps[~m].min()
         if k > 1:
             assert np.all(m[masks[k - 2]])
+
+
+def test_scattered_orbits_are_met_in_order_of_airspeed_along_a_one_fold_branch():
+    # a subcritical campaign: unstable orbits growing from the Hopf point (26 m/s) as the
+    # airspeed falls, the one at 21.6 m/s smaller than its neighbours in airspeed (scatter);
+    # stable orbits growing with the airspeed from the fold; one of unknown stability
+    V = np.array([25.8, 24.1, 22.4, 21.6, 20.6, 20.7, 22.4, 23.2, 19.0])
+    A = np.array([7.0, 18.0, 29.0, 25.0, 30.0, 51.0, 76.0, 86.0, 40.0]) * 1e-3
+    label = np.array([-1, -1, -1, -1, -1, 1, 1, 1, 0.0])
+    shuffle = np.random.default_rng(3).permutation(len(V))
+    bd = BranchData(A[shuffle], V[shuffle], label[shuffle], (10.0, 30.0), np.ones(4), A)
+    order = shuffle[branch_order(bd)]
+    assert list(order) == list(range(len(V)))
+    # by amplitude, the scattered orbit would come before two of its neighbours in airspeed
+    assert list(np.argsort(A[:5])) != list(range(5))
+    # a supercritical campaign (stable orbits only): by airspeed, as the amplitude grows
+    V2, A2 = np.array([24.0, 25.0, 26.0]), np.array([0.02, 0.01, 0.03])
+    bd2 = BranchData(A2, V2, np.ones(3), (10.0, 30.0), np.ones(4), A2)
+    assert list(branch_order(bd2)) == [0, 1, 2]
 
 
 def test_a_stage_is_the_objective_on_its_orbits_alone(problem):

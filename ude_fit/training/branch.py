@@ -105,15 +105,36 @@ class BranchData:
                    np.asarray(data.y_scale, float) * np.sqrt(2.0), grid)
 
 
+def branch_order(bd: BranchData) -> np.ndarray:
+    """The orbits in the order a branch with at most one fold meets them from the Hopf
+    point: the unstable ones (between the Hopf point and the fold), then the stable ones,
+    each class in order of airspeed, in the direction in which its amplitudes grow (the sign
+    of the slope of a straight line fitted to amplitude against airspeed); orbits of unknown
+    stability last, by amplitude. On either side of a single fold the airspeed along the
+    branch is monotone and the amplitude need not be: measured orbits scattered in
+    amplitude (a smaller orbit between two larger ones in airspeed) are met in order of
+    airspeed, so ordering them by amplitude would ask the branch to turn back and forth."""
+    index = np.arange(len(bd.amps))
+    parts = []
+    for label in (-1.0, 1.0):
+        mine = index[bd.label == label]
+        V, A = bd.V[mine], bd.amps[mine]
+        slope = np.polyfit(V, A, 1)[0] if len(V) > 1 and np.ptp(V) > 0 else 0.0
+        key = np.sign(slope) * V if slope != 0 else A
+        parts.append(mine[np.lexsort((A, key))])
+    unknown = index[bd.label == 0]
+    parts.append(unknown[np.argsort(bd.amps[unknown], kind="stable")])
+    return np.concatenate(parts)
+
+
 def amplitude_stages(data) -> list[np.ndarray]:
     """Masks over the orbits for a periodic training that grows with the branch: the
-    smallest orbit alone, then one more at a time in order of first-harmonic heave
-    amplitude, up to all but the largest (the stage on every orbit follows). Along the
-    branch born at a Hopf point the amplitude grows from zero, through the fold if there is
-    one, so each stage asks the branch already fitted to reach one orbit further, instead
-    of asking the network for every orbit at once (which it can meet on an isola apart from
-    the branch from the Hopf point)."""
-    order = np.argsort(BranchData.of(data).amps, kind="stable")
+    first orbit along a one-fold branch from the Hopf point alone (:func:`branch_order`),
+    then one more at a time in that order, up to all but the last (the stage on every orbit
+    follows). So each stage asks the branch already fitted to reach one orbit further,
+    instead of asking the network for every orbit at once (which it can meet on an isola
+    apart from the branch from the Hopf point)."""
+    order = branch_order(BranchData.of(data))
     masks = []
     for k in range(1, len(order)):
         m = np.zeros(len(order), bool)
