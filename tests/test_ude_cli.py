@@ -32,7 +32,7 @@ NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory"
             "--equilibrium-penalty", "4.5", "--smoothness-penalty", "5.5",
             "--weight-decay", "6.5", "--param-scale", "2", "--param-dependence", "polynomial",
             "--param-degree", "3", "--reference-hopf", "24.1", "--reference-fold", "20.4",
-            "--rest-free", "--starts-together"]
+            "--no-rest-free", "--starts-together"]
 # the amplitude form of the correction (no network options with it), the constraint and
 # branch rounds and the amplitude stages (which --training trajectory above excludes)
 FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rounds", "2",
@@ -62,7 +62,8 @@ def test_every_fit_flag_is_set_by_the_test_and_taken_by_the_pipeline():
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     pipe = {a.dest for a in sub.choices["pipeline"]._actions}
     assert _fit_dests() <= pipe
-    flags = {f.lstrip("-").replace("-", "_") for f in NN_FLAGS + FORM_FLAGS + GP_FLAGS + FIT_ONLY_FLAGS
+    flags = {f.lstrip("-").removeprefix("no-").replace("-", "_")
+             for f in NN_FLAGS + FORM_FLAGS + GP_FLAGS + FIT_ONLY_FLAGS
              if f.startswith("--")}
     assert _fit_dests() - {"data", "system", "stability"} == flags
 

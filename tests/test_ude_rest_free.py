@@ -96,3 +96,23 @@ def test_rest_free_is_for_the_aerofoils_network():
         FitOptions(system="oscillator", train=TrainConfig(rest_free=True))
     with pytest.raises(ValueError, match="--rest-free"):
         FitOptions(system="flutter", approximator="gp", train=TrainConfig(rest_free=True))
+
+
+def test_the_aerofoils_default_network_is_rest_free_with_constraint_rounds():
+    used = lambda **kw: FitOptions(**kw).train.for_system(kw["system"])
+    flutter = used(system="flutter")
+    assert flutter.rest_free is True and flutter.constraint_rounds == 7
+    # where the rounds cannot run, the default has none (an explicit request is refused)
+    assert used(system="flutter", starts_together=True).constraint_rounds == 0
+    assert used(system="flutter", training="trajectory").constraint_rounds == 0
+    gp = used(system="flutter", approximator="gp")
+    assert (gp.rest_free, gp.constraint_rounds) == (False, 0)
+    amplitude = used(system="flutter", train=TrainConfig(form="amplitude"))
+    assert (amplitude.rest_free, amplitude.constraint_rounds) == (False, 0)
+    oscillator = used(system="oscillator")
+    assert (oscillator.rest_free, oscillator.constraint_rounds) == (False, 0)
+    # the user's choice stands
+    plain = used(system="flutter", train=TrainConfig(rest_free=False, constraint_rounds=0))
+    assert (plain.rest_free, plain.constraint_rounds) == (False, 0)
+    # and what a fit records is what was used
+    assert FitOptions("flutter").to_json()["train"]["rest_free"] is True

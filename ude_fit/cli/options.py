@@ -110,23 +110,26 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--param-degree", type=positive_int("--param-degree", 0),
                    default=2, metavar="D", help="--param-dependence polynomial: the degree "
                    "(default 2; 0: a correction of the states alone)")
-    p.add_argument("--rest-free", action="store_true",
+    p.add_argument("--rest-free", action=argparse.BooleanOptionalAction, default=None,
                    help="aerofoil: the network's value and slope at rest are subtracted, so "
                    "it cannot move the equilibrium or its linearisation; explicit linear "
                    "terms on the displacements and velocities, affine in the airspeed, carry "
-                   "the linear change (where the Hopf point lies)")
+                   "the linear change (where the Hopf point lies). Default: on for the "
+                   "aerofoil's network (--no-rest-free: the plain network)")
     p.add_argument("--correction-form", default="network", choices=("network", "amplitude"),
                    help="the correction's form: a neural network of the states and the "
                    "parameter (default), or (experimental, aerofoil) linear terms plus a "
                    "damping convex in the oscillation's size, the Hopf point held where the "
                    "unstable orbits point (docs/fitting.md; not a default)")
     p.add_argument("--constraint-rounds", type=positive_int("--constraint-rounds", 0),
-                   default=0, metavar="N",
+                   default=None, metavar="N",
                    help="aerofoil, periodic training: where the trained model breaks the "
                    "energy-rising or rest-stability condition, train on with that penalty "
                    "weighted to count as much as the data's misfit, ten times more each "
                    "round while it is still broken, at most N rounds; a model that meets "
-                   "both is left as it is; no weights to choose (docs/fitting.md; default 0)")
+                   "both is left as it is; no weights to choose (docs/fitting.md; default 7 "
+                   "for the aerofoil's network trained on periodic orbits one start at a "
+                   "time, else 0)")
     p.add_argument("--branch-rounds", type=positive_int("--branch-rounds", 0),
                    default=0, metavar="N",
                    help="aerofoil, periodic training: N rounds of training on with the "
@@ -134,10 +137,10 @@ def add_fit_arguments(p) -> None:
                    "in amplitude, with the slope their stability implies and one turn at "
                    "most (docs/fitting.md; default 0)")
     p.add_argument("--amplitude-stages", action="store_true",
-                   help="aerofoil, periodic training: train on the smallest orbit first, then "
-                   "add the orbits one at a time in order of amplitude, as continuation from "
-                   "the Hopf point meets them, before the stage on all of them "
-                   "(experimental; docs/fitting.md)")
+                   help="aerofoil, periodic training: train on the orbit nearest the Hopf "
+                   "point first, then add the orbits one at a time in the order a branch "
+                   "with one fold meets them (unstable, then stable, each by airspeed), "
+                   "before the stage on all of them (experimental; docs/fitting.md)")
     p.add_argument("--control-input", action="store_true",
                    help="aerofoil: the recorded holding control as a known force on heave, "
                    "so a point held with some control is fitted as an orbit of the "

@@ -23,6 +23,8 @@ mechanistic model's output-error identification on the same periodic objective.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -134,8 +136,11 @@ def train_ensemble(model: UDE, data: TrainingData, *, keys, cfg: TrainConfig,
                    training: str, progress=None) -> list:
     """One fresh MLP correction per key, trained together as one vectorised ensemble
     (every stage's steps vmapped over the starts, optimiser state included): start k
-    is what :func:`train_ude` gives with ``keys[k]``, to rounding. Returns, per key,
-    (UDE, info) or the :class:`~.optimise.Diverged` that dropped it."""
+    is what :func:`train_ude` gives with ``keys[k]``, to rounding (constraint rounds, which
+    differ from start to start, are not run unless asked for, and then refused). Returns,
+    per key, (UDE, info) or the :class:`~.optimise.Diverged` that dropped it."""
+    if cfg.constraint_rounds is None:
+        cfg = dataclasses.replace(cfg, constraint_rounds=0)
     return _train(model, data, list(keys), cfg, training, progress, ensemble=True)
 
 
