@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import gc
 import os
+import sys
 import shutil
 from pathlib import Path
 
@@ -76,3 +78,16 @@ def pytest_collection_modifyitems(config, items):
         mark = item.get_closest_marker("minutes")
         return mark.args[0] if mark else 0.0
     items.sort(key=lambda item: -minutes(item))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _compiled_code_released_after_each_module():
+    """A pytest worker runs many modules' fits in one process. Every XLA executable keeps
+    its machine code in memory maps of its own, and a worker that had compiled a few dozen
+    fits went past the kernel's limit on maps per process (vm.max_map_count, 65530): the next
+    compilation died with a segmentation fault. A module's compiled functions are shared
+    within it; after it they are let go (jax.clear_caches releases the maps)."""
+    yield
+    if "jax" in sys.modules:
+        sys.modules["jax"].clear_caches()
+        gc.collect()

@@ -1,14 +1,14 @@
 """The real wind-tunnel measurements (lee2020/model2: 11 CBC points, 4 stable, 7 unstable):
-mechanistic and UDE models fitted with `ude-fit fit`, as a user would run it on them.
+mechanistic and UDE models fitted with the default command, as a user would run it on them
+(`ude-fit fit model2 --system flutter`; three starts instead of five, for CI's time).
 
-As in the paper, the experiment needs a wider network than the simulations (2 x 48 sigmoid
-units); three starts (the README's five, less the two this seed does not keep: 19 minutes of
-CI beside the other worker with five), the adequacy check keeps the best. On these few,
-scattered points an unregularised network snakes through them (0 of 5 starts adequate), so
-the fit runs with
-the energy-balance penalties docs/fitting.md describes for wind-tunnel data: the equilibrium stable
-where the unstable orbits surround it (--rest-stability), the net work per cycle concave in
-amplitude squared (--energy-shape) and rising with the airspeed (--energy-rising).
+The default aerofoil network is rest-free (its Hopf point is the mechanistic model's and the
+explicit linear terms', not the network's extrapolation to rest) and held by constraint
+rounds to the energy-rising and rest-stability conditions, with no weight set by hand
+(docs/fitting.md). On these few, scattered points that puts the Hopf point where the
+unstable orbits point and every point on the model's branches with its stability, but the
+branch from the Hopf point still folds more than once in most starts: the issue's 80 %
+adequate starts is not met (the strict xfail below).
 """
 
 from __future__ import annotations
@@ -27,14 +27,12 @@ jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (s
 # the fit takes about 6 min alone on 2 cores, 12 beside the other CI worker
 pytestmark = [pytest.mark.timeout(2400), pytest.mark.minutes(12)]
 
-REGULARISED = ["--rest-stability", "30", "--energy-shape", "3", "--energy-rising", "10000"]
-
 
 @pytest.fixture(scope="module")
 def lee_fit(lee2020_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("lee_fit")
-    rc = cli.main(["fit", str(lee2020_dir / "model2"), "--system", "flutter", "--width", "48",
-                   "--starts", "3", "--seed", "0", *REGULARISED, "--out", str(out), "--quiet"])
+    rc = cli.main(["fit", str(lee2020_dir / "model2"), "--system", "flutter",
+                   "--starts", "3", "--seed", "0", "--out", str(out), "--quiet"])
     with open(out / "metrics.json") as fh:
         return rc, json.load(fh), out
 
@@ -74,7 +72,7 @@ def _figure(x) -> str:
     return "—" if x is None else f"{x:.4f}"
 
 
-def test_the_kept_start_is_adequate_with_the_subcritical_picture(lee_fit, capsys):
+def test_the_hopf_point_is_where_the_unstable_orbits_point(lee_fit, capsys):
     _, m, _ = lee_fit
     with capsys.disabled():
         print("\nlee2020 model2: mechanistic branch RMS "
@@ -85,14 +83,17 @@ def test_the_kept_start_is_adequate_with_the_subcritical_picture(lee_fit, capsys
                           f"{'*' if r['adequate'] else ''}"
                           for r in m["starts"]["records"] if r.get("metrics")))
     kept = m["ude"]
-    # the kept diagram is the subcritical picture: a fold, and the Hopf point beyond the
-    # last unstable orbit (25.8 m/s), near where the shrinking unstable orbits point (26.3)
-    assert kept["adequate"] and 1 <= len(kept["folds"]) + len(kept["isola_folds"]) <= 2
-    assert 25.8 < kept["hopf"]["model"] < 27.5
+    # the Hopf point is where the shrinking unstable orbits point (the data's estimate,
+    # 26.34 m/s), beyond the last unstable orbit (25.8 m/s): the issue asks within 0.5 m/s
+    ref = kept["hopf"]["reference"]
+    assert kept["hopf"]["model"] is not None and abs(kept["hopf"]["model"] - ref) <= 0.5
+    # every start ends meeting both conditions the constraint rounds hold it to
+    for r in m["starts"]["records"]:
+        assert r["info"]["constraints_met"] is True, r["info"]
 
 
-@pytest.mark.xfail(strict=True, reason="measured 2 of 3 on seed 0 (2 of 5 with five starts); "
-                   "issue 17 asks for 80 % with the default command and no hand-set weights")
+@pytest.mark.xfail(strict=True, reason="measured 0 of 3 on seed 0 (2 to 4 folds per start); "
+                   "issue 17 asks for 80 % with the default command")
 def test_at_least_80_percent_of_starts_adequate(lee_fit):
     _, m, _ = lee_fit
     assert m["starts"]["adequate"] >= 0.8 * m["starts"]["requested"], m["starts"]["records"]

@@ -20,10 +20,18 @@ from .mechanistic import Drive
 from .ude import UDE
 
 
+def _at_drive(model, drive: Drive):
+    """``model`` with what it computes once per drive done before the loop
+    (:meth:`UDE.at_drive`); any other object with a ``vector_field`` (a rig's truth, say)
+    is integrated as it is."""
+    at = getattr(model, "at_drive", None)
+    return model if at is None else at(drive)
+
+
 def rk4_orbit(model: UDE, y0, T, drive: Drive, n: int):
     """Integrate ``n`` RK4 steps over ``[0, T]``; returns (y(T), samples at t_j = j T / n)."""
     dt = T / n
-    f = model.at_drive(drive).vector_field
+    f = _at_drive(model, drive).vector_field
 
     def step(y, j):
         t = j * dt
@@ -57,7 +65,7 @@ class ClassicalRK4(diffrax.AbstractERK):
 def diffrax_samples(model: UDE, y0, T, drive: Drive, n: int, sub: int):
     """States at t_j = j T / n, j = 0..n-1, integrated by diffrax with ``sub`` classical RK4
     steps between samples (reverse-mode differentiable, checkpointed)."""
-    frozen = model.at_drive(drive)
+    frozen = _at_drive(model, drive)
     term = diffrax.ODETerm(lambda t, y, args: frozen.vector_field(t, y, drive))
     ts = T * jnp.arange(n) / n
     sol = diffrax.diffeqsolve(term, ClassicalRK4(), t0=0.0, t1=ts[-1], dt0=T / (n * sub),
