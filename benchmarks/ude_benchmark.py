@@ -3,7 +3,7 @@ per branch, 16 starts trained as one vectorised ensemble and one after another (
 training and compile time, each start's loss and branch error), periodic-orbit against trajectory training, and how the error and the
 apparent Hopf point move with measurement noise for the NN and the GP corrections.
 
-    python3 benchmarks/ude_benchmark.py [--quick] [--only ensemble] [--starts N] [--out F.json]
+    python3 benchmarks/ude_benchmark.py [--quick] [--only ensemble|step] [--starts N] [--out F.json]
 
 Data: the aerofoil rig's true limit cycles written in the campaign layout by the test fixture
 (tests/ude_fixtures.py), σ = 0 (averaged truth) or σ > 0 (a held orbit, noisy raw record,
@@ -129,7 +129,7 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=1, help="repeats of the timed fit (median)")
     ap.add_argument("--starts", type=int, default=16,
                     help="starts of the ensemble figure (default 16)")
-    ap.add_argument("--only", choices=("ensemble",),
+    ap.add_argument("--only", choices=("ensemble", "step"),
                     help="only this figure (and the data it needs)")
     ap.add_argument("--out", help="also write the JSON here")
     ap.add_argument("--child", help=argparse.SUPPRESS)
@@ -154,15 +154,22 @@ def main() -> int:
     result = {"benchmark": "ude_fit", "truth": truth, "python": platform.python_version(),
               "machine": platform.machine(), "cpus": os.cpu_count()}
 
+    if a.only == "step":
+        result["periodic_step"] = _periodic_step(files[("10", 0.0)])
+        print(json.dumps(result, indent=2))
+        return 0
     if a.only != "ensemble":
         _single_and_comparisons(a, files, truth, starts, result)
+        result["periodic_step"] = _periodic_step(files[("10", 0.0)])
     # many starts as one vectorised ensemble: 16 starts of the same fit, compile included
     # 16 starts of the same fit, compile included, trained together (--starts-together)
     # and one after another: the ratio is taken within this run
     for name, together in (("ensemble", True), ("one_after_another", False)):
+        # no constraint rounds either way: the starts trained together cannot take them,
+        # and the comparison is of the same training
         many = _run_child({"data": files[("10", 0.0)], "approximator": "nn",
                            "training": "periodic", "starts": a.starts, "truth": truth,
-                           "together": together})
+                           "together": together, "train": {"constraint_rounds": 0}})
         result[name] = {"starts": a.starts, "goal_seconds": 60,
                         "reached_1pct": sum(1 for r in many.get("per_start", [])
                                             if r["branch_rms"] is not None
@@ -177,6 +184,39 @@ def main() -> int:
         with open(a.out, "w") as fh:
             fh.write(text + "\n")
     return 0
+
+
+def _periodic_step(path: str, repeats: int = 20) -> dict:
+    """Milliseconds of one periodic training step (value and gradient, the default 2x12
+    network, median of ``repeats`` after compiling), the plain network against the rest-free
+    one, on the same orbits, initial weights and mechanistic model."""
+    import equinox as eqx
+    import jax.numpy as jnp
+    from ude_fit import load
+    from ude_fit.fitting import identify_mechanistic, prepare
+    from ude_fit.models.ude import UDE
+    from ude_fit.training.losses import periodic_loss
+    from ude_fit.training.options import TrainConfig
+    from ude_fit.training.train import _trainable_spec, new_correction
+    data, *_ = prepare(load([path], "flutter"), "flutter", None, 32)
+    mech, _ = identify_mechanistic(data, "flutter")
+    out = {"orbits": int(data.n_orbits), "repeats": repeats}
+    for name, rest_free in (("plain", False), ("rest_free", True)):
+        cfg = TrainConfig(rest_free=rest_free).for_system("flutter")
+        corr = new_correction(UDE(mech), data, jax.random.PRNGKey(0), cfg)
+        trained, static = eqx.partition(corr, _trainable_spec(corr))
+        params = {"corr": trained, "dy0": jnp.zeros(data.ys[:, 0, :].shape),
+                  "dT": jnp.zeros(data.period.shape)}
+        step = eqx.filter_jit(jax.value_and_grad(periodic_loss))
+        jax.block_until_ready(step(params, static, mech, data, cfg, None))
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(step(params, static, mech, data, cfg, None))
+            times.append(time.perf_counter() - t0)
+        out[f"{name}_ms"] = round(1000 * statistics.median(times), 2)
+    out["ratio"] = round(out["rest_free_ms"] / out["plain_ms"], 3)
+    return out
 
 
 def _single_and_comparisons(a, files, truth, starts, result) -> None:
