@@ -166,9 +166,11 @@ def _freeze_member(where, driver: Driver, for_s: float = 2.0) -> int:
             continue
 
 
-def _wait_points(member_folder: str, n: int, timeout: float = 300) -> None:
+def _wait_points(member_folder: str, n: int, since: float, timeout: float = 300) -> None:
     """Until the campaign file a member is writing in its scratch folder (on this machine:
-    the nodes are local) holds `n` points."""
+    the nodes are local) holds `n` points. Only folders made at or after ``since`` count:
+    an earlier run's scratch folder left in the temporary directory (a run killed before it
+    could clean up) would otherwise answer at once."""
     import glob
     import tempfile
     from cbc_controller.log import read_campaign
@@ -177,7 +179,8 @@ def _wait_points(member_folder: str, n: int, timeout: float = 300) -> None:
     while time.time() - t0 < timeout:
         for path in glob.glob(pattern):
             try:
-                if len(read_campaign(path).points) >= n:
+                if (os.stat(os.path.dirname(path)).st_mtime >= since
+                        and len(read_campaign(path).points) >= n):
                     return
             except Exception:            # mid-commit or not created yet: look again
                 pass
@@ -237,9 +240,10 @@ def main(work: Path) -> None:
         res["fleet_a_rerun_hashes"] = _hashes(work / "A")
 
         # fleet B: Ctrl-C while its long member runs; the rerun does the rest
+        started = time.time() - 1.0                    # mtimes have coarse resolution
         b = _fleet(str(work / "fleet_b.toml"), work / "B", env)
         b.wait_for("[1/2]")                            # the short member done, and then
-        _wait_points("fleet-four-default-s5", 2)      # Ctrl-C once the long one logged points
+        _wait_points("fleet-four-default-s5", 2, started)   # Ctrl-C once the long one logged
         b.proc.send_signal(signal.SIGINT)
         res["fleet_b"] = b.finish()
         res["fleet_b_index_after_interrupt"] = json.loads((work / "B" / "index.json").read_text())

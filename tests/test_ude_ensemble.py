@@ -43,10 +43,12 @@ def test_ensemble_start_k_is_the_single_start_with_key_k(tmp_path, stages):
     for k in range(3):
         alone, info = train_ude(UDE(mech), data, key=keys[k], cfg=cfg, training=training)
         model, info_k = together[k]
+        # to rounding: the rest-free network's Jacobian at rest, batched over the starts,
+        # sums in another order than alone, and 90 training steps carry that to a few 1e-9
         for a, b in zip(_weights(alone), _weights(model), strict=True):
-            np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12)
-        assert info_k["final_loss"] == pytest.approx(info["final_loss"], rel=1e-9)
-        assert info_k["equation_loss"] == pytest.approx(info["equation_loss"], rel=1e-9)
+            np.testing.assert_allclose(b, a, rtol=1e-7, atol=1e-12)
+        assert info_k["final_loss"] == pytest.approx(info["final_loss"], rel=1e-7)
+        assert info_k["equation_loss"] == pytest.approx(info["equation_loss"], rel=1e-7)
         finals.append(info["final_loss"])
     assert len(set(finals)) == 3                 # the keys really gave different starts
 

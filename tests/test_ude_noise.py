@@ -32,7 +32,7 @@ def noisy_fits(tmp_path_factory, flutter_truth):
         for approx in ("nn", "gp"):
             o = d / f"{approx}_{sigma}"
             rc = cli.main(["fit", str(data), "--system", "flutter", "--approximator", approx,
-                           "--starts", "2" if approx == "nn" else "1",
+                           "--starts", "1",
                            "--reference-hopf", repr(flutter_truth["hopf"]),
                            "--reference-fold", repr(flutter_truth["fold"]),
                            "--out", str(o), "--quiet"])
