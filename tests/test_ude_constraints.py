@@ -4,6 +4,8 @@ condition trains on with the broken penalty at a weight set from the data's misf
 tenfold per round while it is still broken; a fit that meets both is left exactly as it
 was."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -39,8 +41,9 @@ def problem(tmp_path_factory):
     return data, mech, cfg, regularity_points(data)
 
 
-def _enforced(problem, k):
+def _enforced(problem, k, **cfg_fields):
     data, mech, cfg, reg = problem
+    cfg = dataclasses.replace(cfg, **cfg_fields)
     trainable, static = eqx.partition(SpeedDamping(jnp.asarray(k)), eqx.is_inexact_array)
     params = {"corr": trainable, "dy0": jnp.zeros(data.ys[:, 0, :].shape),
               "dT": jnp.zeros(data.period.shape)}
@@ -74,6 +77,17 @@ def test_a_broken_condition_is_enforced_without_a_weight_from_the_user(problem):
     assert k > -50.0
     assert info["energy-rising_value"] < 0.01 * rising
     assert info["rest-stability_value"] < 0.01 * rest
+
+
+def test_a_round_that_diverges_is_undone_and_the_start_kept(problem):
+    # a step size no orbit survives: the first round's loss is not finite
+    before, k, failed, info = _enforced(problem, -50.0, learning_rate=1e6)
+    assert before[0] > 100 * EnergyRising(1.0).tolerance
+    assert not failed                            # the start is not lost
+    assert k == -50.0                            # the model from before the round
+    assert info["constraint_rounds"] == 0 and not info["constraints_met"]
+    assert info["constraint_stop"].startswith("round 1 undone (constraints, round 1: loss is")
+    assert info["energy-rising_value"] == pytest.approx(before[0])
 
 
 @pytest.mark.parametrize("fields, message", [

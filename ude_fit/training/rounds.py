@@ -41,14 +41,17 @@ def enforce_constraints(params, static, mech, data: TrainingData, cfg: TrainConf
     business, not the user's: a model that meets every constraint is left exactly as it
     was, so data whose fit already has the physics' picture is not touched.
 
-    Returns (params, loss, failed, info): ``descend``'s first three, and info's scalars:
+    A round whose loss is not finite is undone and the rounds end there: the start keeps
+    the last model that trained.
+
+    Returns (params, loss, failed, info): ``descend``'s first three (none failed), and info:
     rounds trained, whether every constraint is met at the end, each constraint's final
-    value and weight."""
+    value and weight, and why the rounds stopped early where a round was undone."""
     constraints = constraints_for(cfg)
     tolerance = np.array([c.tolerance for c in constraints])
     measure = lambda p: _misfit_and_constraints(p, static, mech, data, cfg, reg, constraints)
     weights = np.zeros(len(constraints))
-    rounds, failed = 0, {}
+    rounds, stop = 0, None
     while True:
         misfit, values = (np.asarray(x, float) for x in measure(params))
         broken = values > tolerance
@@ -57,19 +60,24 @@ def enforce_constraints(params, static, mech, data: TrainingData, cfg: TrainConf
         with np.errstate(divide="ignore"):
             first = misfit / values              # where broken, values > 0
         weights = np.where(broken, np.maximum(10.0 * weights, first), weights)
-        rounds += 1
-        params, loss, failed = descend(
+        new, new_loss, failed = descend(
             constrained_periodic_loss, params,
             (static, mech, data, cfg, reg, constraints, jnp.asarray(weights)), lanes=None,
             adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps, lr=cfg.learning_rate,
-            progress=progress, stage=f"constraints, round {rounds}")
+            progress=progress, stage=f"constraints, round {rounds + 1}")
         if failed:
-            return params, loss, failed, {"constraint_rounds": rounds}
+            # the start is not lost: it keeps the model of the last round that trained, whose
+            # broken conditions the info reports (the start's judgement does the rest)
+            stop = failed[0]
+            break
+        params, loss, rounds = new, new_loss, rounds + 1
     info = {"constraint_rounds": rounds, "constraints_met": bool(not broken.any())}
+    if stop is not None:
+        info["constraint_stop"] = f"round {rounds + 1} undone ({stop})"
     for c, v, w in zip(constraints, values, weights):
         info[f"{c.option}_value"] = float(v)
         info[f"{c.option}_weight"] = float(w)
-    return params, loss, failed, info
+    return params, loss, {}, info
 
 
 @eqx.filter_jit
