@@ -2,12 +2,12 @@
 point traced in amplitude, and its airspeeds as first-order functions of the parameters,
 checked against the pseudo-arclength tracer and against tracing again."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tests.ude_corrections import SpeedDamping
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import UDE, identify, load, training_data
 from ude_fit.analysis.continuation import trace_flutter
@@ -17,15 +17,6 @@ from ude_fit.training.options import FitOptions, TrainConfig
 jax.config.update("jax_enable_x64", True)
 
 N_STEPS = 128        # RK4 steps per period, as training takes them (32 samples x 4)
-
-
-class SpeedDamping(eqx.Module):
-    """A heave force k (V - 20) h' (no force at rest; a small change of the flutter mode's
-    damping that grows with the airspeed)."""
-    k: jax.Array
-
-    def __call__(self, z):
-        return jnp.stack([self.k * (z[4] - 20.0) * z[2], 0.0 * z[4]])
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tests.ude_corrections import SpeedDamping
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import UDE, identify, load, training_data
 from ude_fit.training.options import FitOptions, TrainConfig
@@ -20,15 +21,6 @@ from ude_fit.training.penalties import (constraints_for, EnergyRising, RestStabi
 from ude_fit.training.rounds import enforce_constraints
 
 jax.config.update("jax_enable_x64", True)
-
-
-class SpeedDamping(eqx.Module):
-    """A heave force k (V - 20) h': its work per cycle is k (V - 20) <h'^2>, so k < 0 takes
-    energy out as the airspeed grows (the energy-rising condition broken)."""
-    k: jax.Array
-
-    def __call__(self, z):
-        return jnp.stack([self.k * (z[4] - 20.0) * z[2], 0.0 * z[4]])
 
 
 @pytest.fixture(scope="module")

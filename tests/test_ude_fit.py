@@ -557,16 +557,10 @@ def test_energy_rising_penalty_sees_energy_input_falling_with_airspeed():
     quasi-steady model alone: the hinge on its own rise, evaluated here independently of
     the penalty's machinery; a correction feeding energy in as V grows clears it; one
     taking it out as V grows is penalised, the more the stronger it is."""
-    import equinox as eqx
     import jax.numpy as jnp
+    from tests.ude_corrections import SpeedDamping
     from ude_fit import UDE, flutter_qs
     from ude_fit.training.penalties import EnergyRising, Regularity
-
-    class SpeedDamping(eqx.Module):
-        k: float = eqx.field(static=True)
-
-        def __call__(self, z):            # heave force k (V - 20) h': work k (V - 20) <h'^2>
-            return jnp.stack([self.k * (z[4] - 20.0) * z[2], 0.0 * z[4]])
 
     n = 32
     t = np.arange(n) / n * 2 * np.pi
@@ -633,12 +627,7 @@ def test_energy_rising_acts_in_the_periodic_stage(tmp_path):
     from ude_fit import UDE, identify, training_data
     from ude_fit.training.penalties import regularity_points
     from ude_fit.training.losses import periodic_loss
-
-    class SpeedDamping(eqx.Module):
-        k: float = eqx.field(static=True)
-
-        def __call__(self, z):            # heave force k (V - 20) h': work k (V - 20) <h'^2>
-            return jnp.stack([self.k * (z[4] - 20.0) * z[2], 0.0 * z[4]])
+    from tests.ude_corrections import SpeedDamping
 
     write_truth_campaign(tmp_path / "f.h5", "flutter", airspeeds=(18.0, 21.0, 23.6))
     data = training_data(load([tmp_path / "f.h5"], "flutter"))
