@@ -275,3 +275,29 @@ def test_report_lists_unknown_points_holding_and_parameter_sources(named):
     assert all(f"`{o.source}`" in table for o in ds)
     assert "| c_h | 0 | 0.1 | identified from the orbits, at its physical bound 0 |" in text
     assert "| m_T | 16.9 | — | user file rig.toml |" in text
+
+
+def test_pitch_offset_is_the_fitted_mean_where_failed_reads_cluster(tmp_path):
+    """The encoder's failed reads (the all-ones code) come in bursts at a few angles of the
+    cycle. Left out, they leave the valid samples' plain mean off the signal's own mean, by
+    where they fall; the pitch's offset is the fitted mean, so the loaded orbit is the
+    signal with its mean removed and its harmonics as they were."""
+    from ude_fit.data.lee import LEE_PITCH_INVALID
+    path = tmp_path / "CBC_v21_0.mat"
+    write_lee(path, V=21.0)
+    m = scipy.io.loadmat(str(path))
+    data = m["data"].copy()
+    ph = 2 * np.pi * FREQ * np.arange(data.shape[1]) / RATE
+    # 20 % of the reads fail, all near the top of the pitch's swing
+    failed = np.cos(ph + 1.0) > np.quantile(np.cos(ph + 1.0), 0.8)
+    data[3, failed] = LEE_PITCH_INVALID + 1e-6
+    scipy.io.savemat(str(path), {**{k: v for k, v in m.items() if not k.startswith("__")},
+                                 "data": data})
+    o = load([path], "flutter")[0]
+    pitch = o.coeffs[1]
+    K = (pitch.size - 1) // 2
+    assert abs(pitch[0]) < 1e-6                       # the signal's mean is its offset
+    # the first harmonic as written (0.05 rad), the heave's phase frame: 1 rad behind
+    assert math.hypot(pitch[1], pitch[1 + K]) == pytest.approx(0.05, rel=1e-6)
+    assert math.atan2(-pitch[1 + K], pitch[1]) == pytest.approx(1.0, abs=1e-6)
+    assert np.all(np.abs(pitch[2:1 + K]) < 1e-6) and np.all(np.abs(pitch[2 + K:]) < 1e-6)
