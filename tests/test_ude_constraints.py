@@ -80,6 +80,7 @@ def test_a_round_that_diverges_is_undone_and_the_start_kept(problem):
     assert info["constraint_rounds"] == 0 and not info["constraints_met"]
     assert info["constraint_stop"].startswith("round 1 undone (constraints, round 1: loss is")
     assert info["energy-rising_value"] == pytest.approx(before[0])
+    assert info["energy-rising_weight"] == 0.0       # the weights the kept model trained with
 
 
 @pytest.mark.parametrize("fields, message", [

@@ -59,10 +59,10 @@ def enforce_constraints(params, static, mech, data: TrainingData, cfg: TrainConf
             break
         with np.errstate(divide="ignore"):
             first = misfit / values              # where broken, values > 0
-        weights = np.where(broken, np.maximum(10.0 * weights, first), weights)
+        tried = np.where(broken, np.maximum(10.0 * weights, first), weights)
         new, new_loss, failed = descend(
             constrained_periodic_loss, params,
-            (static, mech, data, cfg, reg, constraints, jnp.asarray(weights)), lanes=None,
+            (static, mech, data, cfg, reg, constraints, jnp.asarray(tried)), lanes=None,
             adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps, lr=cfg.learning_rate,
             progress=progress, stage=f"constraints, round {rounds + 1}")
         if failed:
@@ -70,7 +70,7 @@ def enforce_constraints(params, static, mech, data: TrainingData, cfg: TrainConf
             # broken conditions the info reports (the start's judgement does the rest)
             stop = failed[0]
             break
-        params, loss, rounds = new, new_loss, rounds + 1
+        params, loss, rounds, weights = new, new_loss, rounds + 1, tried
     info = {"constraint_rounds": rounds, "constraints_met": bool(not broken.any())}
     if stop is not None:
         info["constraint_stop"] = f"round {rounds + 1} undone ({stop})"
