@@ -498,35 +498,6 @@ def test_a_start_that_snakes_through_the_points_does_not_set_the_bar():
     assert judge_starts([snake, missing], mech, opts, scatter=0.5) == [False, False]
 
 
-def test_the_kept_start_where_none_is_adequate_has_the_fewest_extra_folds_under_the_scatter():
-    """Errors under the data's own scatter cannot be told apart by the points: between such
-    starts the diagram's shape decides (the fewest folds beyond adequacy's allowance, a
-    missing fold counted too), then the error. Above the scatter the error decides, and an
-    adequate start or one missing fewer points always comes first."""
-    from ude_fit.analysis.adequacy import kept_index
-
-    mech = _figures(0.15, [15.8])                  # one fold allowed beyond its one
-    snake = _figures(0.012, [20.1, 20.4, 21.0, 22.9])
-    two = _figures(0.030, [20.4, 23.1])
-    three = _figures(0.020, [20.4, 23.1, 14.0])
-    none = [False] * 3
-    assert kept_index([snake, two, three], none, mech, scatter=0.042) == 1
-    assert kept_index([snake, two, three], none, mech, scatter=0.0) == 0   # as before
-    # a scatter the first start is under and the others are not: the error decides
-    assert kept_index([snake, two, three], none, mech, scatter=0.015) == 0
-    no_fold = _figures(0.010, [])
-    one_fold = _figures(0.025, [20.4])
-    assert kept_index([no_fold, one_fold], [False] * 2, _figures(0.15, []), scatter=0.042,
-                      fold_required=True) == 1
-    assert kept_index([no_fold, one_fold], [False] * 2, _figures(0.15, []), scatter=0.042) == 0
-    # an adequate start first, fewer missed points next, whatever the folds
-    assert kept_index([two, snake], [False, True], mech, scatter=0.042) == 1
-    missing = _figures(0.010, [20.4], missed=1)
-    assert kept_index([missing, snake], none[:2], mech, scatter=0.042) == 1
-    assert kept_index([None, None], [False, False], mech) is None
-    assert kept_index([None, two], [False, False], mech) == 1
-
-
 def test_where_the_mechanistic_model_misses_every_point_the_backbone_sets_the_bar():
     """A mechanistic model with no orbit at any point has no error to beat; without another
     bar the best credible start would be adequate however far from the points (a start 77 %

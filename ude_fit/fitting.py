@@ -9,10 +9,8 @@ stability (nothing missed), its branch RMS error is below the mechanistic model'
 it is within ``adequacy_factor`` times the error of the best start that passes the
 other checks, or under ``adequacy_floor``, or under the data's own scatter about smooth
 branches (:func:`data_scatter`), whichever is largest. The kept start is the adequate one
-with the smallest branch error; if none is adequate, the one with the fewest missed points,
-then the smallest error, errors under the data's scatter counting as equal and the fewest
-extra folds deciding between them (:func:`~.analysis.adequacy.kept_index`); the result says
-which.
+with the smallest branch error; if none is adequate, the one with the fewest missed points
+and then the smallest error, and the result says so.
 """
 
 from __future__ import annotations
@@ -25,8 +23,7 @@ import numpy as np
 
 from ._precision import require_float64
 from .analysis.backbone import BackboneFit, backbone_of
-from .analysis.adequacy import (data_scatter, error_bar, judge_starts, kept_index,
-                                needs_fold)
+from .analysis.adequacy import data_scatter, error_bar, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
 from .analysis.metrics_type import ModelMetrics
 from .data.estimates import estimate_from_data
@@ -375,12 +372,14 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
     scatter = data_scatter(ds)
     fold_needed = needs_fold(ds)
     backbone = backbone_metrics(ds)
+    ok = [s for s in starts if s.completed]
     for s, a in zip(starts, judge_starts([s.metrics for s in starts], mech_m, opts, scatter,
                                          fold_needed, _baseline_rms(backbone))):
         s.adequate = a
-    kept = kept_index([s.metrics if s.completed else None for s in starts],
-                      [s.adequate for s in starts], mech_m, scatter, fold_needed)
-    best = None if kept is None else starts[kept]
+    best = None
+    if ok:
+        best = min(ok, key=lambda s: (not s.adequate, s.metrics.summary.missed,
+                                      s.metrics.summary.branch_rms))
     data_record = {"points": len(ds), "sources": list(ds.sources),
                    "stable": int(sum(1 for o in ds if o.stable is True)),
                    "unstable": int(sum(1 for o in ds if o.stable is False)),

@@ -49,13 +49,6 @@ def error_bar(mech_m: ModelMetrics, baseline_rms: float | None = None
     return None, None
 
 
-def _extra_folds(m: ModelMetrics, mech_m: ModelMetrics, fold_required: bool) -> int:
-    """How far ``m``'s fold count is from what adequacy allows: folds beyond one extra per
-    branch family, or the one fold missing where the data needs one."""
-    excess = max(0, m.fold_count - (mech_m.fold_count + mech_m.families))
-    return excess + int(fold_required and m.fold_count == 0)
-
-
 def _credible(m: ModelMetrics | None, mech_m: ModelMetrics, fold_required: bool = False,
               baseline_rms: float | None = None) -> bool:
     """Every check of adequacy but the comparison with the other starts: nothing missed,
@@ -71,7 +64,7 @@ def _credible(m: ModelMetrics | None, mech_m: ModelMetrics, fold_required: bool 
         return False
     # qualitatively the mechanistic model's diagram: at most one extra fold per branch
     # family (a network that snakes through the points is not a model of them)
-    if _extra_folds(m, mech_m, False):
+    if m.fold_count > mech_m.fold_count + mech_m.families:
         return False
     bar, _ = error_bar(mech_m, baseline_rms)
     if bar is not None and m.summary.branch_rms >= bar:
@@ -115,21 +108,3 @@ def needs_fold(ds: OrbitDataset) -> bool:
         o.stable is False for o in ds)
 
 
-
-
-def kept_index(start_metrics: list[ModelMetrics | None], adequate: list[bool],
-               mech_m: ModelMetrics, scatter: float = 0.0,
-               fold_required: bool = False) -> int | None:
-    """Which start to keep (None where every start was dropped): an adequate one before
-    any other, then the fewest missed points, then the smallest branch error, where errors
-    under the data's own scatter count as equal (the points cannot tell such starts apart)
-    and the diagram's shape decides between them: the fewest folds beyond what adequacy
-    allows, then the smaller error. Among adequate starts that is the smallest error."""
-    def rank(k):
-        m = start_metrics[k]
-        rms = m.summary.branch_rms
-        rms = np.inf if rms is None else rms
-        return (not adequate[k], m.summary.missed, max(rms, scatter),
-                _extra_folds(m, mech_m, fold_required), rms)
-    done = [k for k, m in enumerate(start_metrics) if m is not None]
-    return min(done, key=rank) if done else None
