@@ -33,10 +33,10 @@ NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory"
             "--weight-decay", "6.5", "--param-scale", "2", "--param-dependence", "polynomial",
             "--param-degree", "3", "--reference-hopf", "24.1", "--reference-fold", "20.4",
             "--no-rest-free", "--starts-together"]
-# the amplitude form of the correction (no network options with it), the constraint and
-# branch rounds and the amplitude stages (which --training trajectory above excludes)
+# the amplitude form of the correction (no network options with it), the constraint, branch
+# and monotone rounds and the amplitude stages (which --training trajectory above excludes)
 FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rounds", "2",
-              "--branch-rounds", "3", "--amplitude-stages"]
+              "--branch-rounds", "3", "--monotone-rounds", "4", "--amplitude-stages"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 # fit options the pipeline refuses (tests/test_ude_control_input.py checks the refusal)
 FIT_ONLY_FLAGS = ["--control-input", "--control-gain", "2.5"]

@@ -17,3 +17,17 @@ class SpeedDamping(eqx.Module):
 
     def __call__(self, z):
         return jnp.stack([self.k * (z[4] - 20.0) * z[2], 0.0 * z[4]])
+
+
+class LargeSwingFeed(eqx.Module):
+    """A heave force k scale relu((h / h0)^2 - 1)^2 h': nothing while the heave stays
+    within h0, energy fed in beyond it (k > 0; k is the trained weight, of order one as a
+    network's are). Orbits whose swing stays within h0 do not feel it; a large enough k
+    turns the stable branch back above them (a second fold where the data is silent)."""
+    k: jax.Array
+    scale: float = eqx.field(static=True, default=200.0)
+    h0: float = eqx.field(static=True, default=0.1)
+
+    def __call__(self, z):
+        feed = jax.nn.relu((z[0] / self.h0) ** 2 - 1.0) ** 2 * z[2]
+        return jnp.stack([self.k * self.scale * feed, 0.0 * z[4]])

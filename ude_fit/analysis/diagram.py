@@ -14,6 +14,10 @@ from .metrics import branch_metrics, locations, model_orbit
 from .metrics_type import ModelMetrics
 
 
+# the aerofoil's diagram is traced up to this many times the largest measured amplitude
+AMPLITUDE_WINDOW = 1.4
+
+
 def diagram_ranges(ds: OrbitDataset) -> dict:
     """Parameter and amplitude windows for tracing, from the data's own extent."""
     A = ds.amplitudes()
@@ -21,7 +25,7 @@ def diagram_ranges(ds: OrbitDataset) -> dict:
         V = ds.parameters()
         span = max(np.ptp(V), 0.1 * V.max())
         return {"v_range": [max(0.5, V.min() - 1.5 * span), V.max() + 0.75 * span],
-                "amp_max": 1.4 * float(A.max())}
+                "amp_max": AMPLITUDE_WINDOW * float(A.max())}
     out = {}
     for f in ds.frequencies_group():
         sub = ds.at_frequency(f)

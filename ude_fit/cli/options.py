@@ -136,6 +136,13 @@ def add_fit_arguments(p) -> None:
                    "measured orbits asked to lie on the branch from the Hopf point, traced "
                    "in amplitude, with the slope their stability implies and one turn at "
                    "most (docs/fitting.md; default 0)")
+    p.add_argument("--monotone-rounds", type=positive_int("--monotone-rounds", 0),
+                   default=0, metavar="N",
+                   help="aerofoil, periodic training (experimental): N rounds of training on "
+                   "with the model's branch asked to be monotone between measured orbits of "
+                   "the same stability (falling where unstable, rising where stable) and to "
+                   "keep rising above the largest stable orbit, traced from the fitted orbits "
+                   "in amplitude; weighted from the data's misfit (docs/fitting.md; default 0)")
     p.add_argument("--amplitude-stages", action="store_true",
                    help="aerofoil, periodic training: train on the orbit nearest the Hopf "
                    "point first, then add the orbits one at a time in the order a branch "
@@ -184,5 +191,6 @@ def fit_options(args):
                           form=args.correction_form,
                           constraint_rounds=args.constraint_rounds,
                           branch_rounds=args.branch_rounds,
+                          monotone_rounds=args.monotone_rounds,
                           amplitude_stages=args.amplitude_stages,
                           penalties=tuple(p for p in penalties if p.weight)))

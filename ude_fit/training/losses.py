@@ -9,8 +9,8 @@ compiled once per problem structure.
   enters through the sign of the characteristic polynomial of the monodromy matrix at 1 (the
   aerofoil's trivial multiplier factored out), which changes sign exactly where a real
   multiplier crosses 1, as at a fold: smooth and with no eigen-decomposition.
-* :func:`constrained_periodic_loss` and :func:`branch_loss`: the periodic loss with the
-  terms of the constraint and branch rounds (:mod:`.rounds`).
+* :func:`constrained_periodic_loss`, :func:`branch_loss` and :func:`monotone_loss`: the
+  periodic loss with the terms of the constraint, branch and monotone rounds (:mod:`.rounds`).
 """
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from ..models.flow import diffrax_samples, rk4_orbit
 from ..models.ude import UDE
 from .branch import branch_terms
 from .identify import TrainingData
+from .monotone import monotone_term
 from .options import TrainConfig
 from .penalties import penalty_sum
 
@@ -111,6 +112,16 @@ def branch_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg,
     extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
     terms = branch_terms(model, trace, *points)
     return periodic_loss_of(model, params, data, cfg, reg) + extra + w_branch * sum(terms)
+
+
+def monotone_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, constraints,
+                  weights, trace, v_span, w_monotone):
+    """The constrained periodic loss plus the monotone term (:mod:`.monotone`) at
+    ``w_monotone``."""
+    model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
+    extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
+    return (periodic_loss_of(model, params, data, cfg, reg) + extra
+            + w_monotone * monotone_term(model, trace, v_span))
 
 
 def periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg=None):

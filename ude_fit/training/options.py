@@ -64,6 +64,10 @@ class TrainConfig:
     # aerofoil, periodic training: rounds of training on with the measured orbits asked to
     # lie on the branch from the Hopf point, one turn at most (training.branch; 0: none)
     branch_rounds: int = 0
+    # aerofoil, periodic training: rounds of training on with the branch monotone between
+    # orbits of the same stability and rising above the largest stable one
+    # (training.monotone; 0: none)
+    monotone_rounds: int = 0
     # aerofoil, periodic training: before the periodic stage on every orbit, stages on the
     # orbit nearest the Hopf point alone, then one more at a time in the order a branch
     # with one fold meets them (training.branch.amplitude_stages)
@@ -76,6 +80,7 @@ class TrainConfig:
         if self.constraint_rounds is not None:
             _check_int("constraint_rounds", self.constraint_rounds, 0)
         _check_int("branch_rounds", self.branch_rounds, 0)
+        _check_int("monotone_rounds", self.monotone_rounds, 0)
         for name in ("equation_steps", "equation_lbfgs_steps", "adam_steps", "lbfgs_steps"):
             if getattr(self, name) is not None:
                 _check_int(name, getattr(self, name), 0)
@@ -129,7 +134,8 @@ class TrainConfig:
     def needs_points(self) -> bool:
         """Whether any active penalty reads the regularity points."""
         return (any(p.needs_points and p.weight for p in self.penalties)
-                or bool(self.constraint_rounds) or self.branch_rounds > 0)
+                or bool(self.constraint_rounds) or self.branch_rounds > 0
+                or self.monotone_rounds > 0)
 
     def to_json(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
@@ -244,7 +250,8 @@ class FitOptions:
                              "(a self-excited system's orbit sizes)")
         rounds = (("constraint_rounds", "its conditions are an equilibrium's and a "
                    "self-excited branch's"),
-                  ("branch_rounds", "a self-excited branch from a Hopf point"))
+                  ("branch_rounds", "a self-excited branch from a Hopf point"),
+                  ("monotone_rounds", "a self-excited branch's stability and direction"))
         for name, why in rounds:
             if not getattr(self.train, name):
                 continue
@@ -282,6 +289,8 @@ class FitOptions:
                 nn_only.append("--constraint-rounds")
             if self.train.branch_rounds:
                 nn_only.append("--branch-rounds")
+            if self.train.monotone_rounds:
+                nn_only.append("--monotone-rounds")
             if self.train.amplitude_stages:
                 nn_only.append("--amplitude-stages")
             if self.train.param_scale != 1.0:

@@ -6,6 +6,8 @@ and trains on.
   conditions (:data:`~.penalties.CONSTRAINTS`) where the fit breaks them.
 * :func:`follow_branch` (``branch_rounds``, experimental): the measured orbits on the branch
   from the Hopf point, traced in amplitude, with one turn at most (:mod:`.branch`).
+* :func:`keep_monotone` (``monotone_rounds``, experimental): the branch monotone between
+  orbits of the same stability and rising above the largest stable one (:mod:`.monotone`).
 """
 from __future__ import annotations
 
@@ -17,7 +19,8 @@ from ..models.amplitude import resolve
 from ..models.ude import UDE
 from .branch import BranchData, branch_terms, trace_branch
 from .identify import TrainingData
-from .losses import branch_loss, constrained_periodic_loss, periodic_objective
+from .losses import branch_loss, constrained_periodic_loss, monotone_loss, periodic_objective
+from .monotone import monotone_term, stretches, trace_stretches
 from .optimise import descend
 from .options import TrainConfig
 from .penalties import constraints_for
@@ -80,6 +83,25 @@ def enforce_constraints(params, static, mech, data: TrainingData, cfg: TrainConf
     return params, loss, {}, info
 
 
+def _shortened_round(loss_fn, params, args, cfg: TrainConfig, progress, stage: str, before,
+                     shrinks, state, merit):
+    """One round with a trust region by the number of steps: trained with ``loss_fn`` at
+    the full step counts divided by each of ``shrinks`` in turn, until the traced state
+    (``state(params)``, whose first item is None where nothing was traced) has a ``merit``
+    no worse than ``before``. Returns (params, loss, state, merit) of the last try; merit
+    inf where it failed or traced nothing."""
+    for shrink in shrinks:
+        new, new_loss, failed = descend(
+            loss_fn, params, args, lanes=None, adam_steps=cfg.adam_steps // shrink,
+            lbfgs_steps=cfg.lbfgs_steps // shrink, lr=cfg.learning_rate, progress=progress,
+            stage=stage)
+        cand = None if failed else state(new)
+        after = np.inf if cand is None or cand[0] is None else merit(cand)
+        if after <= before:
+            break
+    return new, new_loss, cand, after
+
+
 @eqx.filter_jit
 def _branch_terms_now(params, static, mech, trace, points):
     model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
@@ -137,19 +159,12 @@ def follow_branch(params, static, mech, data: TrainingData, cfg: TrainConfig, re
         before = misfit + w_b * (total + unreached)
         # a trust region by the number of steps: a round the traced branch says is worse
         # is undone and tried again with half the steps, at most three times
-        for shrink in (1, 2, 4, 8):
-            new, new_loss, failed = descend(
-                branch_loss, params,
-                (static, mech, data, cfg, reg, constraints, weights, trace, points,
-                 jnp.asarray(w_b)), lanes=None,
-                adam_steps=cfg.adam_steps // shrink, lbfgs_steps=cfg.lbfgs_steps // shrink,
-                lr=cfg.learning_rate, progress=progress, stage=f"branch, round {rnd}")
-            cand = None if failed else state(new)
-            after = (np.inf if cand is None or cand[0] is None else
-                     cand[2] + w_b * (float(cand[1].sum()) + cand[4]))
-            failed = {}
-            if after <= before:
-                break
+        new, new_loss, cand, after = _shortened_round(
+            branch_loss, params, (static, mech, data, cfg, reg, constraints, weights, trace,
+                                  points, jnp.asarray(w_b)),
+            cfg, progress, f"branch, round {rnd}", before, (1, 2, 4, 8), state,
+            lambda c: c[2] + w_b * (float(c[1].sum()) + c[4]))
+        failed = {}
         if not after <= before:
             info["branch_stop"] = f"round {rnd} undone at every step count"
             break
@@ -162,3 +177,84 @@ def follow_branch(params, static, mech, data: TrainingData, cfg: TrainConfig, re
         info.update(branch_solved=int(solved), branch_unreached=float(unreached),
                     branch_weight=float(w_b))
     return params, loss, failed, info
+
+
+@eqx.filter_jit
+def _monotone_now(params, static, mech, trace, v_span):
+    return monotone_term(resolve(UDE(mech, eqx.combine(params["corr"], static))), trace, v_span)
+
+
+def keep_monotone(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, loss,
+                  enforced, progress=None):
+    """Training on with the monotone term (:mod:`.monotone`): trace the stretches the labels
+    say are monotone, train with their linearised airspeeds, trace again, for at most
+    ``cfg.monotone_rounds`` rounds, the constraints kept at the weights their rounds ended
+    with. The term's weight makes it count as much as the data's misfit in the first round,
+    ten times more each round while it is not met. A round whose result is worse by the
+    traced (not linearised) stretches than its start is undone and tried again with half
+    the steps, at most twice, and then the rounds end. A step the trace does not reach counts
+    in that judgement as one turned a whole airspeed span the wrong way.
+
+    Returns (params, loss, failed, info); info (scalars): stretches planned, rounds kept,
+    why they stopped early (and, where a round was undone, the misfit, hinges and unsolved
+    steps its last try came to), the final misfit, hinges and unsolved steps, grid points
+    planned and solved, and the term's weight. (Experimental, off by default:
+    docs/fitting.md.)"""
+    constraints = constraints_for(cfg)
+    weights = jnp.asarray([enforced.get(f"{c.option}_weight", 0.0) for c in constraints])
+    bd = BranchData.of(data)
+    plan = stretches(bd)
+    v_span = max(float(np.ptp(bd.V)), 0.1 * float(bd.V.max()))
+    n = data.ys.shape[1] * cfg.substeps
+
+    def state(p):
+        """(trace, hinges, unsolved steps, misfit, points solved per stretch)."""
+        model = resolve(UDE(mech, eqx.combine(p["corr"], static)))
+        misfit = float(np.asarray(periodic_objective(model, p, data, cfg)))
+        got = trace_stretches(model, data, bd, plan, n, p) if plan else None
+        if got is None:
+            return None, None, None, misfit, []
+        trace, solved = got
+        hinges = float(_monotone_now(p, static, mech, trace, v_span))
+        return trace, hinges, sum(len(s.amps) - max(k, 1) for s, k in zip(plan, solved)), \
+            misfit, solved
+
+    def merit(st, w):
+        # a step the trace does not reach counts as one turned a whole airspeed span against
+        # its direction: a round must not meet the term by breaking the trace, and one that
+        # takes the trace further is better for it
+        return st[3] + w * (st[1] + st[2])
+
+    w_m, info = 0.0, {"monotone_rounds": 0, "monotone_stretches": len(plan)}
+    got = state(params)
+    for rnd in range(1, cfg.monotone_rounds + 1):
+        trace, hinges, _, misfit, _ = got
+        if trace is None:
+            info["monotone_stop"] = ("no stretch between orbits of one stability" if not plan
+                                     else "no stretch traced")
+            break
+        if hinges <= 0:          # (steps not reached give the training nothing to move)
+            break
+        w_m = misfit / hinges if rnd == 1 else 10.0 * w_m
+        before = merit(got, w_m)
+        # a trust region by the number of steps, as in the branch rounds
+        new, new_loss, cand, after = _shortened_round(
+            monotone_loss, params, (static, mech, data, cfg, reg, constraints, weights, trace,
+                                    v_span, jnp.asarray(w_m)),
+            cfg, progress, f"monotone, round {rnd}", before, (1, 2, 4), state,
+            lambda c: merit(c, w_m))
+        if not after <= before:
+            info["monotone_stop"] = f"round {rnd} undone at every step count"
+            if cand is not None and cand[0] is not None:     # what the last try came to
+                info.update(monotone_tried_misfit=cand[3], monotone_tried_hinges=cand[1],
+                            monotone_tried_unsolved=cand[2])
+            break
+        params, loss, got = new, new_loss, cand
+        info["monotone_rounds"] = rnd
+    trace, hinges, unsolved, misfit, solved = got
+    # (scalars: what a start's record keeps)
+    info.update(monotone_misfit=misfit, monotone_weight=float(w_m),
+                monotone_points=sum(len(s.amps) for s in plan), monotone_solved=sum(solved))
+    if trace is not None:
+        info.update(monotone_hinges=hinges, monotone_unsolved=unsolved)
+    return params, loss, {}, info

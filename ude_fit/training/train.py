@@ -16,6 +16,9 @@ The stages, in the order :func:`train_ude` runs them (losses in :mod:`.losses`):
   both is not touched.
 * ``branch`` (aerofoil, ``branch_rounds`` > 0, experimental): the measured orbits asked to
   lie on the branch from the Hopf point (:func:`.rounds.follow_branch`).
+* ``monotone`` (aerofoil, ``monotone_rounds`` > 0, experimental): the branch monotone
+  between orbits of one stability and rising above the largest stable one
+  (:func:`.rounds.keep_monotone`).
 
 Optimisation: Adam, then L-BFGS (optax), all float64. :func:`train_ensemble` trains many
 random starts at once, vmapped (:mod:`.optimise`). :func:`refine_mechanistic` is the
@@ -42,7 +45,7 @@ from .losses import equation_loss, periodic_loss, periodic_objective, trajectory
 from .optimise import Diverged, descend, lane_of, minimize
 from .options import TrainConfig
 from .penalties import regularity_points
-from .rounds import enforce_constraints, follow_branch
+from .rounds import enforce_constraints, follow_branch, keep_monotone
 
 
 def _trainable_spec(correction):
@@ -198,12 +201,15 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
             raise ValueError("constraint rounds need the starts trained one at a time")
         params, loss, failed, enforced = enforce_constraints(params, static, mech, data, cfg, reg, loss,
                                                   progress)
-    if training == "periodic" and cfg.branch_rounds and not failed:
-        if ensemble:
-            raise ValueError("branch rounds need the starts trained one at a time")
-        params, loss, failed, more = follow_branch(params, static, mech, data, cfg, reg, loss,
-                                                    enforced, progress)
-        enforced = {**enforced, **more}
+    # the rounds on a traced branch, after the constraints (which stay at their weights)
+    for name, rounds, run in (("branch", cfg.branch_rounds, follow_branch),
+                              ("monotone", cfg.monotone_rounds, keep_monotone)):
+        if training == "periodic" and rounds and not failed:
+            if ensemble:
+                raise ValueError(f"{name} rounds need the starts trained one at a time")
+            params, loss, failed, more = run(params, static, mech, data, cfg, reg, loss,
+                                             enforced, progress)
+            enforced = {**enforced, **more}
     out = []
     for i in range(len(keys)):
         if i in failed:
