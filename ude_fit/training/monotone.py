@@ -90,6 +90,13 @@ class MonotoneTrace(eqx.Module):
     n: int = eqx.field(static=True)
 
 
+@eqx.filter_jit
+def _orbit_samples(model: UDE, start, T, V, n: int):
+    # compiled once: a scan run outside a compiled function is compiled anew at every call,
+    # and each compilation keeps its code mapped for the process's life
+    return rk4_orbit(model, start, T, Drive.of(V), n)[1]
+
+
 def _model_orbit_top(model: UDE, data, params, i: int, n: int):
     """The model's closed orbit through measured orbit i (the periodic stage's initial
     state and period), started at the top of its heave swing (h' = 0, the phase condition
@@ -100,8 +107,8 @@ def _model_orbit_top(model: UDE, data, params, i: int, n: int):
         start = start + np.asarray(params["dy0"][i]) * np.asarray(data.y_scale)
         if "dT" in params:
             T *= 1.0 + float(np.asarray(params["dT"])[i])
-    _, ys = rk4_orbit(model, jnp.asarray(start), T, Drive.of(float(data.drive.param[i])), n)
-    ys = np.asarray(ys)
+    ys = np.asarray(_orbit_samples(model, jnp.asarray(start), jnp.asarray(T),
+                                   jnp.asarray(float(data.drive.param[i])), n))
     return ys[int(np.argmax(ys[:, 0]))], T
 
 
