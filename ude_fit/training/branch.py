@@ -54,12 +54,17 @@ def _residual(model: UDE, u, A, su, n: int):
 
 
 @eqx.filter_jit
-def _residual_and_jacobian(model, u, A, su, n: int):
-    """(dr/du, r) from one forward-mode pass (the orbit integrated once)."""
+def _compiled_residual_and_jacobian(model, u, A, su, n: int):
     def f(v):
         r = _residual(model, v, A, su, n)
         return r, r
     return jax.jacfwd(f, has_aux=True)(u)
+
+
+def _residual_and_jacobian(model, u, A, su, n: int):
+    """(dr/du, r) from one forward-mode pass (the orbit integrated once); the amplitude goes
+    in as an array, so that one compilation serves every amplitude of a grid."""
+    return _compiled_residual_and_jacobian(model, u, jnp.asarray(A, dtype=float), su, n)
 
 
 class BranchTrace(eqx.Module):
@@ -100,8 +105,8 @@ class BranchData:
         # the window the diagram is traced in (analysis.diagram.diagram_ranges)
         v_range = (max(0.5, P.min() - 1.5 * span), P.max() + 0.75 * span)
         # dense near the Hopf point, where a hook (a supercritical start turning back) hides
-        grid = np.concatenate([[0.01, 0.02, 0.04], np.linspace(0.07, AMPLITUDE_WINDOW, n_grid - 3)]) \
-            * amps.max()
+        grid = np.concatenate([[0.01, 0.02, 0.04],
+                               np.linspace(0.07, AMPLITUDE_WINDOW, n_grid - 3)]) * amps.max()
         return cls(amps, P, np.asarray(data.label, float), v_range,
                    np.asarray(data.y_scale, float) * np.sqrt(2.0), grid)
 

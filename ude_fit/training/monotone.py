@@ -162,9 +162,11 @@ def trace_stretches(model: UDE, data, bd: BranchData, plan: list[Stretch], n: in
     e[ns + 1] = su[ns + 1]
     W = np.array([np.linalg.solve(J.T, e) if J is not None else np.zeros(ns + 2) for J in Js])
     U = np.array(us)
-    return MonotoneTrace(jnp.asarray(U), jnp.asarray(amps), jnp.asarray(W),
-                         jnp.asarray(U[:, ns + 1] * su[ns + 1]), jnp.asarray(su),
-                         jnp.asarray(np.array(lo, int)), jnp.asarray(np.array(direction, float)), n), solved
+    trace = MonotoneTrace(jnp.asarray(U), jnp.asarray(amps), jnp.asarray(W),
+                          jnp.asarray(U[:, ns + 1] * su[ns + 1]), jnp.asarray(su),
+                          jnp.asarray(np.array(lo, int)),
+                          jnp.asarray(np.array(direction, float)), n)
+    return trace, solved
 
 
 def stretch_airspeeds(model: UDE, tr: MonotoneTrace):
