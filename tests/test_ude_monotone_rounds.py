@@ -25,7 +25,7 @@ from ude_fit.training.rounds import keep_monotone
 jax.config.update("jax_enable_x64", True)
 
 # the planted rounds train about 200 steps on the 4 orbits, tracing the stretches each round
-pytestmark = pytest.mark.minutes(3)
+pytestmark = pytest.mark.minutes(1)
 
 N_STEPS = 128        # RK4 steps per period, as training takes them (32 samples x 4)
 V_SPAN = 2.6         # the campaign's airspeed span, as the rounds take it
@@ -152,6 +152,7 @@ def test_the_rounds_push_out_the_fold_the_data_cannot_see(problem, planted):
     data, mech, bd, plan = problem
     _, new, failed, info = planted
     assert not failed and info["monotone_rounds"] >= 2, info
+    assert info["monotone_weight"] > 0 and info["monotone_solved"] == info["monotone_points"]
     assert info["monotone_unsolved"] == 0
     # the feed the data cannot see is what the rounds took away (the weight is trained on
     # the data and the term alone)

@@ -198,7 +198,7 @@ def keep_monotone(params, static, mech, data: TrainingData, cfg: TrainConfig, re
     Returns (params, loss, failed, info); info (scalars): stretches planned, rounds kept,
     why they stopped early (and, where a round was undone, the misfit, hinges and unsolved
     steps its last try came to), the final misfit, hinges and unsolved steps, grid points
-    planned and solved, and the term's weight. (Experimental, off by default:
+    planned and solved, and the weight the kept model trained with. (Experimental, off by default:
     docs/fitting.md.)"""
     constraints = constraints_for(cfg)
     weights = jnp.asarray([enforced.get(f"{c.option}_weight", 0.0) for c in constraints])
@@ -225,7 +225,7 @@ def keep_monotone(params, static, mech, data: TrainingData, cfg: TrainConfig, re
         # takes the trace further is better for it
         return st[3] + w * (st[1] + st[2])
 
-    w_m, info = 0.0, {"monotone_rounds": 0, "monotone_stretches": len(plan)}
+    w_m, w_kept, info = 0.0, 0.0, {"monotone_rounds": 0, "monotone_stretches": len(plan)}
     got = state(params)
     for rnd in range(1, cfg.monotone_rounds + 1):
         trace, hinges, _, misfit, _ = got
@@ -249,11 +249,11 @@ def keep_monotone(params, static, mech, data: TrainingData, cfg: TrainConfig, re
                 info.update(monotone_tried_misfit=cand[3], monotone_tried_hinges=cand[1],
                             monotone_tried_unsolved=cand[2])
             break
-        params, loss, got = new, new_loss, cand
+        params, loss, got, w_kept = new, new_loss, cand, w_m
         info["monotone_rounds"] = rnd
     trace, hinges, unsolved, misfit, solved = got
-    # (scalars: what a start's record keeps)
-    info.update(monotone_misfit=misfit, monotone_weight=float(w_m),
+    # (scalars: what a start's record keeps; the weight the kept model trained with)
+    info.update(monotone_misfit=misfit, monotone_weight=float(w_kept),
                 monotone_points=sum(len(s.amps) for s in plan), monotone_solved=sum(solved))
     if trace is not None:
         info.update(monotone_hinges=hinges, monotone_unsolved=unsolved)
