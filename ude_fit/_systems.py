@@ -24,6 +24,9 @@ class SystemKind:
     parameter_unit: str
     diagram_axis: str               # the horizontal axis of a diagram or residual figure
     autonomous: bool                # limit cycles of an autonomous system (Hopf, folds in V)
+    # the diagram is traced up to this many times the largest measured amplitude (of each
+    # forcing frequency's, for a forced system)
+    amplitude_window: float
 
     @property
     def forced(self) -> bool:
@@ -31,9 +34,10 @@ class SystemKind:
 
 
 AEROFOIL = SystemKind("flutter", "aerofoil (flutter)", ("h", "alpha"), "airspeed", "airspeed",
-                      "m/s", "airspeed (m/s)", autonomous=True)
+                      "m/s", "airspeed (m/s)", autonomous=True, amplitude_window=1.4)
 OSCILLATOR = SystemKind("oscillator", "forced oscillator", ("x",), "forcing_amplitude",
-                        "forcing amplitude", "m/s²", "forcing frequency (Hz)", autonomous=False)
+                        "forcing amplitude", "m/s²", "forcing frequency (Hz)", autonomous=False,
+                        amplitude_window=1.5)
 KINDS = {k.name: k for k in (AEROFOIL, OSCILLATOR)}
 
 

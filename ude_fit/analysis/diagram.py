@@ -14,10 +14,6 @@ from .metrics import branch_metrics, locations, model_orbit
 from .metrics_type import ModelMetrics
 
 
-# the aerofoil's diagram is traced up to this many times the largest measured amplitude
-AMPLITUDE_WINDOW = 1.4
-
-
 def diagram_ranges(ds: OrbitDataset) -> dict:
     """Parameter and amplitude windows for tracing, from the data's own extent."""
     A = ds.amplitudes()
@@ -25,12 +21,12 @@ def diagram_ranges(ds: OrbitDataset) -> dict:
         V = ds.parameters()
         span = max(np.ptp(V), 0.1 * V.max())
         return {"v_range": [max(0.5, V.min() - 1.5 * span), V.max() + 0.75 * span],
-                "amp_max": AMPLITUDE_WINDOW * float(A.max())}
+                "amp_max": ds.kind.amplitude_window * float(A.max())}
     out = {}
     for f in ds.frequencies_group():
         sub = ds.at_frequency(f)
         out[f"{f:g}"] = {"freq_hz": float(f), "a_range": [0.0, 1.3 * float(sub.parameters().max())],
-                         "amp_max": 1.5 * float(sub.amplitudes().max())}
+                         "amp_max": ds.kind.amplitude_window * float(sub.amplitudes().max())}
     return {"frequencies": out}
 
 

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._fourier import amplitude, harmonics
-from ..analysis.diagram import AMPLITUDE_WINDOW
+from .._systems import AEROFOIL
 from ..models.equilibria import hopf_point
 from ..models.flow import rk4_orbit
 from ..models.mechanistic import Drive
@@ -105,8 +105,9 @@ class BranchData:
         # the window the diagram is traced in (analysis.diagram.diagram_ranges)
         v_range = (max(0.5, P.min() - 1.5 * span), P.max() + 0.75 * span)
         # dense near the Hopf point, where a hook (a supercritical start turning back) hides
-        grid = np.concatenate([[0.01, 0.02, 0.04],
-                               np.linspace(0.07, AMPLITUDE_WINDOW, n_grid - 3)]) * amps.max()
+        top = AEROFOIL.amplitude_window
+        grid = np.concatenate([[0.01, 0.02, 0.04], np.linspace(0.07, top, n_grid - 3)]) \
+            * amps.max()
         return cls(amps, P, np.asarray(data.label, float), v_range,
                    np.asarray(data.y_scale, float) * np.sqrt(2.0), grid)
 

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..analysis.diagram import AMPLITUDE_WINDOW
+from .._systems import AEROFOIL
 from ..models.flow import rk4_orbit
 from ..models.mechanistic import Drive
 from ..models.ude import UDE
@@ -44,9 +44,9 @@ from .branch import BranchData, _newton, _residual
 BETWEEN_POINTS = 4
 ABOVE_POINTS = 12
 # how far above the largest orbit the branch is asked to rise: past the diagram's window
-# (AMPLITUDE_WINDOW times the largest amplitude), so that a branch flattening at the
-# window's edge is seen turning rather than counted as a fold there
-ABOVE_REACH = AMPLITUDE_WINDOW * 1.1
+# (the aerofoil's amplitude_window times the largest amplitude), so that a branch
+# flattening at the window's edge is seen turning rather than counted as a fold there
+ABOVE_REACH = AEROFOIL.amplitude_window * 1.1
 
 
 @dataclass(frozen=True)
