@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 
 @dataclass(frozen=True)
 class SystemKind:
@@ -39,6 +41,23 @@ OSCILLATOR = SystemKind("oscillator", "forced oscillator", ("x",), "forcing_ampl
                         "forcing amplitude", "m/s²", "forcing frequency (Hz)", autonomous=False,
                         amplitude_window=1.5)
 KINDS = {k.name: k for k in (AEROFOIL, OSCILLATOR)}
+
+
+@dataclass(frozen=True)
+class AirspeedWindow:
+    """Where an aerofoil's diagram is traced, from the measured airspeeds: their span (a
+    tenth of the largest where they nearly coincide) and the window from 1.5 spans below the
+    lowest (at least 0.5 m/s) to 0.75 of a span above the highest, wide enough for a fold
+    below the measured orbits and a Hopf point above them."""
+    span: float
+    low: float
+    high: float
+
+    @classmethod
+    def of(cls, airspeeds) -> "AirspeedWindow":
+        V = np.asarray(airspeeds, float)
+        span = max(float(np.ptp(V)), 0.1 * float(V.max()))
+        return cls(span, max(0.5, float(V.min()) - 1.5 * span), float(V.max()) + 0.75 * span)
 
 
 def system_kind(name: str) -> SystemKind:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._systems import AirspeedWindow
 from ..data.orbit import OrbitDataset
 from ..models.ude import UDE
 from .continuation import trace_flutter, trace_flutter_through, trace_forced
@@ -18,9 +19,8 @@ def diagram_ranges(ds: OrbitDataset) -> dict:
     """Parameter and amplitude windows for tracing, from the data's own extent."""
     A = ds.amplitudes()
     if ds.kind.autonomous:
-        V = ds.parameters()
-        span = max(np.ptp(V), 0.1 * V.max())
-        return {"v_range": [max(0.5, V.min() - 1.5 * span), V.max() + 0.75 * span],
+        window = AirspeedWindow.of(ds.parameters())
+        return {"v_range": [window.low, window.high],
                 "amp_max": ds.kind.amplitude_window * float(A.max())}
     out = {}
     for f in ds.frequencies_group():

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._fourier import amplitude, harmonics
-from .._systems import AEROFOIL
+from .._systems import AEROFOIL, AirspeedWindow
 from ..models.equilibria import hopf_point
 from ..models.flow import rk4_orbit
 from ..models.mechanistic import Drive
@@ -93,6 +93,8 @@ class BranchData:
     V: np.ndarray         # (m,) their airspeeds
     label: np.ndarray     # (m,) +1 stable, -1 unstable, 0 unknown
     v_range: tuple        # where the branch may run
+    v_span: float         # the airspeed scale of the measured points (their span, or a tenth
+                          # of the largest airspeed where they nearly coincide)
     scales: np.ndarray    # (ns,) typical state magnitudes
     grid: np.ndarray      # amplitudes the branch is solved at
 
@@ -101,14 +103,13 @@ class BranchData:
         ys = np.asarray(data.ys)
         amps = amplitude(harmonics(ys[:, :, 0].T, 1))
         P = np.asarray(data.drive.param, float)
-        span = max(float(np.ptp(P)), 0.1 * float(P.max()))
-        # the window the diagram is traced in (analysis.diagram.diagram_ranges)
-        v_range = (max(0.5, P.min() - 1.5 * span), P.max() + 0.75 * span)
+        window = AirspeedWindow.of(P)     # the diagram's (analysis.diagram.diagram_ranges)
         # dense near the Hopf point, where a hook (a supercritical start turning back) hides
         top = AEROFOIL.amplitude_window
         grid = np.concatenate([[0.01, 0.02, 0.04], np.linspace(0.07, top, n_grid - 3)]) \
             * amps.max()
-        return cls(amps, P, np.asarray(data.label, float), v_range,
+        return cls(amps, P, np.asarray(data.label, float), (window.low, window.high),
+                   window.span,
                    np.asarray(data.y_scale, float) * np.sqrt(2.0), grid)
 
 

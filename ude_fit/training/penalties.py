@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._fourier import amplitude, harmonics
+from .._systems import AirspeedWindow
 from ..data.estimates import unstable_amplitude_line
 from ..models.mechanistic import Drive
 from ..models.ude import UDE
@@ -59,8 +60,9 @@ def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> 
     """The penalty points for ``data``: airspeeds across the range the diagram is traced
     over (see ``_fit.diagram_ranges``), states at ``per_orbit`` phases of every orbit."""
     P = np.asarray(data.drive.param, float)
-    span = max(float(np.ptp(P)), 0.1 * float(P.max()))
-    V = np.linspace(max(0.5, P.min() - 1.5 * span), P.max() + 0.75 * span, n_v)
+    window = AirspeedWindow.of(P)
+    span = window.span
+    V = np.linspace(window.low, window.high, n_v)
     ys = np.asarray(data.ys)
     step = max(1, ys.shape[1] // per_orbit)
     # an unstable limit cycle surrounds a stable equilibrium (it is the boundary of its

@@ -124,8 +124,7 @@ def follow_branch(params, static, mech, data: TrainingData, cfg: TrainConfig, re
     constraints = constraints_for(cfg)
     weights = jnp.asarray([enforced.get(f"{c.option}_weight", 0.0) for c in constraints])
     bd = BranchData.of(data)
-    P = bd.V
-    v_span = max(float(np.ptp(P)), 0.1 * float(P.max()))
+    v_span = bd.v_span
     points = (jnp.asarray(bd.V), jnp.asarray(bd.label), v_span, float(bd.amps.max()))
     n = data.ys.shape[1] * cfg.substeps
 
@@ -204,7 +203,7 @@ def keep_monotone(params, static, mech, data: TrainingData, cfg: TrainConfig, re
     weights = jnp.asarray([enforced.get(f"{c.option}_weight", 0.0) for c in constraints])
     bd = BranchData.of(data)
     plan = stretches(bd)
-    v_span = max(float(np.ptp(bd.V)), 0.1 * float(bd.V.max()))
+    v_span = bd.v_span
     n = data.ys.shape[1] * cfg.substeps
 
     def state(p):
