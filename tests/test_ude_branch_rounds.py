@@ -1,22 +1,33 @@
 """Branch rounds (``--branch-rounds``, training.branch): the model's branch from the Hopf
 point traced in amplitude, and its airspeeds as first-order functions of the parameters,
-checked against the pseudo-arclength tracer and against tracing again."""
+checked against the pseudo-arclength tracer and against tracing again; and the rounds on a
+model with a second fold planted above the data."""
 
+import dataclasses
+
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tests.ude_corrections import SpeedDamping
+from tests.ude_corrections import LargeSwingFeed, SpeedDamping
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import UDE, identify, load, training_data
 from ude_fit.analysis.continuation import trace_flutter
-from ude_fit.training.branch import BranchData, branch_airspeeds, one_turn, trace_branch
+from ude_fit.training.branch import (BranchData, branch_airspeeds, branch_terms, one_turn,
+                                     trace_branch)
 from ude_fit.training.options import FitOptions, TrainConfig
+from ude_fit.training.penalties import regularity_points
+from ude_fit.training.rounds import follow_branch
 
 jax.config.update("jax_enable_x64", True)
 
+# the planted rounds train about 120 steps on the 3 orbits, tracing the branch each round
+pytestmark = pytest.mark.minutes(1)
+
 N_STEPS = 128        # RK4 steps per period, as training takes them (32 samples x 4)
+PLANTED = 1.0        # LargeSwingFeed's k: the stable branch turns back near 1.3 x the top orbit
 
 
 @pytest.fixture(scope="module")
@@ -93,6 +104,40 @@ def test_one_turn_charges_the_cheapest_split():
     # charging the 0.5 rise (0.25) or the 1.0 fall (1.0)
     assert float(one_turn(jnp.asarray([-1.0, 0.5, -0.2, 1.0]))) == pytest.approx(
         min(0.5 ** 2, 0.2 ** 2) / 4)
+
+
+def _one_turn_traced(model, bd):
+    """The one-turn term of ``model``'s branch, traced from scratch on the rounds' grid."""
+    trace, solved = trace_branch(model, bd, N_STEPS)
+    a_top = float(bd.amps.max())
+    terms = branch_terms(model, trace, jnp.asarray(bd.V), jnp.asarray(bd.label), bd.v_span,
+                         a_top)
+    return float(terms[2]), solved
+
+
+def test_the_rounds_take_away_the_second_fold_the_data_cannot_see(problem):
+    """follow_branch end to end: the identified model with the planted feed as the trained
+    correction (its k the one weight), the measured orbits' unknowns at the measurement."""
+    data, mech, *_ = problem
+    bd = BranchData.of(data)                 # the rounds' own grid
+    planted = UDE(mech, LargeSwingFeed(jnp.asarray(PLANTED)))
+    was, solved = _one_turn_traced(planted, bd)
+    assert was > 0 and solved == len(bd.grid)      # a second turn inside the grid
+    cfg = dataclasses.replace(TrainConfig(adam_steps=20, lbfgs_steps=40, branch_rounds=2)
+                              .for_system("flutter"), constraint_rounds=0)
+    corr, static = eqx.partition(LargeSwingFeed(jnp.asarray(PLANTED)), eqx.is_inexact_array)
+    params = {"corr": corr, "dy0": jnp.zeros(data.ys[:, 0, :].shape),
+              "dT": jnp.zeros(data.period.shape)}
+    new, _, failed, info = follow_branch(params, static, mech, data, cfg,
+                                         regularity_points(data), None, {})
+    assert not failed and info["branch_rounds"] >= 1, info
+    assert info["branch_weight"] > 0
+    # the feed the data cannot see is what the rounds took away, and the second turn traced
+    # from scratch shrank (measured: k 1 -> 0.90 in two rounds, the turn past the grid's end)
+    k = float(new["corr"].k)
+    assert 0 <= k < PLANTED
+    now, _ = _one_turn_traced(UDE(mech, LargeSwingFeed(jnp.asarray(k))), bd)
+    assert now < 0.1 * was
 
 
 @pytest.mark.parametrize("fields, message", [
