@@ -62,14 +62,16 @@ def test_scattered_orbits_are_met_in_order_of_airspeed_along_a_one_fold_branch()
     A = np.array([7.0, 18.0, 29.0, 25.0, 30.0, 51.0, 76.0, 86.0, 40.0]) * 1e-3
     label = np.array([-1, -1, -1, -1, -1, 1, 1, 1, 0.0])
     shuffle = np.random.default_rng(3).permutation(len(V))
-    bd = BranchData(A[shuffle], V[shuffle], label[shuffle], (10.0, 30.0), np.ones(4), A)
+    bd = BranchData(amps=A[shuffle], V=V[shuffle], label=label[shuffle], v_range=(10.0, 30.0),
+                    v_span=20.0, scales=np.ones(4), grid=A)
     order = shuffle[branch_order(bd)]
     assert list(order) == list(range(len(V)))
     # by amplitude, the scattered orbit would come before two of its neighbours in airspeed
     assert list(np.argsort(A[:5])) != list(range(5))
     # a supercritical campaign (stable orbits only): by airspeed, as the amplitude grows
     V2, A2 = np.array([24.0, 25.0, 26.0]), np.array([0.02, 0.01, 0.03])
-    bd2 = BranchData(A2, V2, np.ones(3), (10.0, 30.0), np.ones(4), A2)
+    bd2 = BranchData(amps=A2, V=V2, label=np.ones(3), v_range=(10.0, 30.0), v_span=20.0,
+                     scales=np.ones(4), grid=A2)
     assert list(branch_order(bd2)) == [0, 1, 2]
 
 
