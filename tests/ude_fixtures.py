@@ -49,6 +49,12 @@ TRUTH_METHOD = "truth: Floquet multipliers of the rig's own model (rig_sim.physi
 FLUTTER_GAINS = (200.0, 60.0)          # kp N/m, kd N s/m (cbc_controller.plans.autonomous)
 OSCILLATOR_GAINS = (1.0e4, 50.0)       # kp 1/s^2, kd 1/s (cbc_controller.plans.forced)
 SETTLE_S = {"flutter": 2.0, "oscillator": 0.5}
+# a target held off the open-loop orbit (invasive): the rig moves to an orbit of the
+# controlled system on the closed loop's slow time scale, so the board is settled until the
+# response stops moving (what a CBC plan waits for before it logs a point)
+STEADY_REL = 1e-4                      # first-harmonic change between blocks, relative
+STEADY_SE = 2.0                        # ... or within this many standard errors (noise)
+MAX_STEADY_S = 120.0                   # rig seconds; a hold that is still moving is an error
 DEFAULT_RECORD_S = {"flutter": 4.0, "oscillator": 1.0}
 
 
@@ -236,6 +242,8 @@ def run_board_on_orbit(system: str, truth: dict, *, sigma: float, seed: int,
     b.set_true_state(truth["state"])
     b.arm()
     b.advance(int(round(SETTLE_S[system] * b.rate)))
+    if target_scale != 1.0:
+        _settle_until_steady(b, truth)
     chunk = L.RING_CAP - 96                 # read each block before the ring wraps over it
     n_total = int(round(record_s * b.rate))
     blocks, samples = [], []
@@ -254,6 +262,32 @@ def run_board_on_orbit(system: str, truth: dict, *, sigma: float, seed: int,
     fourier = {ch: {"mean": b.cmean[CHANNEL_INDEX[ch]].copy(),
                     "var": b.cvar[CHANNEL_INDEX[ch]].copy()} for ch in CHANNELS}
     return ts, fourier, float(b.fmean[0])
+
+
+def _settle_until_steady(b: Board, truth: dict) -> None:
+    """Advance ``b`` by blocks of its averaging window (navg periods) until the response's
+    first harmonic (over that window) has twice in a row moved between blocks by less than
+    STEADY_REL of itself or STEADY_SE standard errors of the difference (noise), so that the
+    window the point is read from holds one orbit, not the way to it."""
+    navg = int(b.cfg[L.CFG_NAVG])
+
+    def first_harmonic() -> tuple[float, float]:
+        mean, var = b.cmean[L.CH_RESPONSE], b.cvar[L.CH_RESPONSE]
+        se = math.sqrt(2.0 * max(var[1] + var[1 + NH], 0.0) / navg)
+        return math.hypot(mean[1], mean[1 + NH]), se
+
+    block = int(round(navg * b.rate / truth["frequency"]))
+    waited, quiet = 0.0, 0
+    previous, _ = first_harmonic()
+    while quiet < 2:
+        if waited > MAX_STEADY_S:
+            raise RuntimeError(f"the board held off {truth} was still moving after "
+                               f"{waited:.0f} rig seconds")
+        b.advance(block)
+        waited += block / b.rate
+        now, se = first_harmonic()
+        quiet = quiet + 1 if abs(now - previous) <= max(STEADY_REL * now, STEADY_SE * se) else 0
+        previous = now
 
 
 # ---- writing --------------------------------------------------------------------------------------
@@ -337,7 +371,10 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
     then those of the points written.
     invasive (flutter): hold every point with its target's amplitude (1 + invasive) and
     (1 - invasive) times the truth's, alternately, so the control stays on (the campaign
-    a CBC run with loose tolerances leaves); the records stay the open-loop truth.
+    a CBC run with loose tolerances leaves); the board is settled on the controlled orbit
+    before the point is read (it moves there in seconds: after the fixed settle alone
+    the unstable points were read halfway, 2-14 % short of where they end); the records
+    stay the open-loop truth.
     """
     effects = tuple(effects)
     if system == "flutter":
