@@ -30,29 +30,69 @@ def truth_dataset(records):
         ("truth",))
 
 
-def fit_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
-              starts: int = 1, names=tuple(name for name, _, _ in FITS)) -> dict:
-    """{name: (FitResult, the kept UDE's ModelMetrics against the truth, fit seconds)} for
-    the fits of :data:`FITS` called ``names`` on campaigns written under ``folder``."""
-    from ude_fit.analysis.diagram import _evaluate
-    from ude_fit.data import load
-    from ude_fit.fitting import fit
-    from ude_fit.training.options import FitOptions
-
+def write_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0):
+    """Write the non-invasive campaign (held.h5) and the invasive one (loose.h5) under
+    ``folder``; returns the truth's open-loop orbits as a dataset."""
     folder = Path(folder)
     truth = write_truth_campaign(folder / "held.h5", "flutter", airspeeds=AIRSPEEDS,
                                  sigma=sigma, seed=seed, record_s=2.0)
     write_truth_campaign(folder / "loose.h5", "flutter", airspeeds=AIRSPEEDS, sigma=sigma,
                          seed=seed, record_s=2.0, invasive=loose)
-    truth_ds = truth_dataset(truth)
+    return truth_dataset(truth)
+
+
+def against_truth(model, truth_ds, ranges, scales):
+    """``model``'s ModelMetrics against the rig's open-loop orbits."""
+    from ude_fit.analysis.diagram import _evaluate
+    return _evaluate(model, truth_ds, ranges, scales, TRUTH_REFERENCE, "truth")[1]
+
+
+def mechanistic_cases(folder: Path, loose: float, effects: tuple = (), *,
+                      sigma: float = 0.0, seed: int = 0) -> dict:
+    """{name: (the mechanistic model's ModelMetrics against the truth, its identification)}
+    for the fits of :data:`FITS`: the mechanistic stage alone (equation error, seconds),
+    with the library ``effects`` added ((key, shape or None) pairs, as --add)."""
+    from ude_fit.data import load
+    from ude_fit.fitting import mechanistic_stage, prepare
+    from ude_fit.models.ude import UDE
+    from ude_fit.training.identify import augment
+    from ude_fit.training.options import FitOptions
+
+    truth_ds = write_cases(folder, loose, sigma=sigma, seed=seed)
+    out = {}
+    for name, path, control in FITS:
+        ds = load([Path(folder) / path], "flutter")
+        opts = FitOptions("flutter", control_input=control, mechanistic_effects=effects)
+        data, ranges, _, _ = prepare(ds, "flutter", TRUTH_REFERENCE, opts.samples)
+        data, mech, ident = mechanistic_stage(ds, data, opts)
+        data = augment(data, mech)
+        out[name] = (against_truth(UDE(mech), truth_ds, ranges, np.asarray(data.y_scale)),
+                     ident)
+    return out
+
+
+def fit_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
+              starts: int = 1, names=tuple(name for name, _, _ in FITS),
+              effects: tuple = ()) -> dict:
+    """{name: (FitResult, the kept UDE's ModelMetrics against the truth, fit seconds, the
+    mechanistic model's ModelMetrics against the truth)} for the fits of :data:`FITS`
+    called ``names`` on campaigns written under ``folder``, with the library ``effects``
+    added to the mechanistic model (as --add)."""
+    from ude_fit.data import load
+    from ude_fit.fitting import fit
+    from ude_fit.training.options import FitOptions
+
+    folder = Path(folder)
+    truth_ds = write_cases(folder, loose, sigma=sigma, seed=seed)
     out = {}
     for name, path, control in (f for f in FITS if f[0] in names):
         t0 = time.perf_counter()
         r = fit(load([folder / path], "flutter"),
-                FitOptions("flutter", starts=starts, seed=seed, control_input=control),
+                FitOptions("flutter", starts=starts, seed=seed, control_input=control,
+                           mechanistic_effects=effects),
                 reference=TRUTH_REFERENCE)
         seconds = time.perf_counter() - t0
-        m = None if r.ude is None else _evaluate(r.ude, truth_ds, r.ranges, r.scales,
-                                                 TRUTH_REFERENCE, "truth")[1]
-        out[name] = (r, m, seconds)
+        m = None if r.ude is None else against_truth(r.ude, truth_ds, r.ranges, r.scales)
+        out[name] = (r, m, seconds, against_truth(r.mechanistic, truth_ds, r.ranges,
+                                                  r.scales))
     return out

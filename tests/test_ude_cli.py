@@ -15,6 +15,7 @@ import pytest
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import EnergyRising, FitOptions, OrbitDataset, load
 from ude_fit.cli import build_parser
+from ude_fit.cli import main as cli_main
 from ude_fit.cli import common as cli_common
 from ude_fit.cli import pipeline as pipeline_cli
 from ude_fit.cli.options import fit_options
@@ -39,7 +40,8 @@ FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rou
               "--branch-rounds", "3", "--monotone-rounds", "4", "--amplitude-stages"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 # fit options the pipeline refuses (tests/test_ude_control_input.py checks the refusal)
-FIT_ONLY_FLAGS = ["--control-input", "--control-gain", "2.5"]
+FIT_ONLY_FLAGS = ["--control-input", "--control-gain", "2.5",
+                  "--add", "heave_unsteady_aero", "pitch_freeplay=0.01"]
 
 
 def _fit_dests() -> set[str]:
@@ -68,12 +70,35 @@ def test_every_fit_flag_is_set_by_the_test_and_taken_by_the_pipeline():
     assert _fit_dests() - {"data", "system", "stability"} == flags
 
 
-def test_the_fit_takes_the_control_flags():
+def test_the_fit_takes_its_own_flags():
     args = build_parser().parse_args(["fit", "data.h5", "--system", "flutter",
                                       *FIT_ONLY_FLAGS, "--out", "o"])
     opts = fit_options(args)
     assert opts.control_input and opts.control_gain == 2.5
-    assert opts == FitOptions("flutter", control_input=True, control_gain=2.5)
+    assert opts == FitOptions("flutter", control_input=True, control_gain=2.5,
+                              mechanistic_effects=(("heave_unsteady_aero", None),
+                                                   ("pitch_freeplay", 0.01)))
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["fit", "--add", "wake"], "unknown effect 'wake' for the flutter model"),
+    (["fit", "--add", "heave_unsteady_aero=0.1"],
+     "--add heave_unsteady_aero=0.1: heave_unsteady_aero has no shape parameter"),
+    (["fit", "--add", "pitch_freeplay=0"], "--add pitch_freeplay=0: the delta (rad) must be "
+     "positive"),
+    (["fit", "--add", "heave_cubic", "heave_cubic"], "--add heave_cubic given twice"),
+    (["fit", "--add", "heave_cubic", "--approximator", "gp"],
+     "--add apply to --approximator nn only"),
+    (["pipeline", "--add", "heave_cubic"], "--add applies to ude-fit fit only"),
+])
+def test_effects_to_add_are_checked(tmp_path, capsys, argv, message):
+    """``--add``: every mistake is one line naming it, exit 2, nothing written."""
+    out = tmp_path / "out"
+    rc = cli_main([argv[0], "data.h5", "--system", "flutter", *argv[1:], "--out", str(out),
+                   "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
 
 
 def test_pipeline_hands_the_library_the_options(monkeypatch, tmp_path):

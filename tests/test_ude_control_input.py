@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from tests import ude_fixtures as F
-from tests.invasive_cases import fit_cases
+from tests.invasive_cases import fit_cases, mechanistic_cases
 from tests.test_ude_realdata import write_lee
 from ude_fit import cli
 from ude_fit._fourier import K
@@ -60,7 +60,7 @@ def test_the_control_comes_in_the_orbits_frame(tmp_path):
 
 def test_gain_is_identified_from_the_orbits(invasive):
     """The rig's control is a force (N), gain 1: identified free, the gain comes out of
-    the right sign and size but not exactly 1 (measured 1.27 on seven airspeeds, 1.54 on
+    the right sign and size but not exactly 1 (measured 1.33 on seven airspeeds, 1.54 on
     these four: the quasi-steady model leaves the unsteady lag's force to the residual,
     and the control, which follows the orbit, takes part of it), and a record in another
     unit (the same control divided by 5) gives 5 times that gain, the other parameters
@@ -105,7 +105,7 @@ def test_pipeline_refuses_the_control_input(tmp_path, capsys):
 
 # ---- fits: the invasive campaign with and without the control, the non-invasive one ----
 
-LOOSE = 0.05        # the target 5 % off the truth orbit: orbits held 2-8 % off theirs
+LOOSE = 0.05        # the target 5 % off the truth orbit: orbits held 2-14 % off theirs
 
 
 @pytest.fixture(scope="module")
@@ -113,25 +113,63 @@ def fits(tmp_path_factory):
     """One start of the default fit on the invasive campaign, with the control as an input
     and without (tests/invasive_cases.py). The issue's comparison with a fit to the
     non-invasive campaign (Hopf and fold within 0.1 m/s of its, error at most 1.5 times
-    its) is not met and is measured by benchmarks/invasive_benchmark.py, not here: with
-    the control, Hopf 24.83 against that fit's 23.84 m/s, error 0.66 % against 0.08 %."""
+    its) is not met by the default's kept UDE and is measured by
+    benchmarks/invasive_benchmark.py, not here (seed 0: with the control, Hopf 24.09 and
+    fold 16.79 against that fit's 23.99 and 16.26 m/s, error 0.37 % against 0.12 %); the
+    mechanistic model with the wake added meets it (the last test of this module)."""
     out = fit_cases(tmp_path_factory.mktemp("fits"), LOOSE,
                     names=("loose+control", "loose"))
-    for name, (r, m, _) in out.items():
+    for name, (r, m, _, _) in out.items():
         assert r.ude is not None and m is not None, name
-    return {name: (r, m) for name, (r, m, _) in out.items()}
+    return {name: (r, m) for name, (r, m, _, _) in out.items()}
 
 
 def test_the_control_input_recovers_the_open_loop_diagram(fits):
-    """The invasive campaign's points are 2-8 % off the open-loop orbits; fitted with the
-    control as a known input, the open-loop diagram is at most half as far from the truth
-    as the same fit without it (measured 0.66 % against 2.06 %), every truth
+    """The invasive campaign's points are 2-14 % off the open-loop orbits; fitted with the
+    control as a known input, the open-loop diagram is at most a third as far from the
+    truth as the same fit without it (measured 0.37 % against 2.56 %), every truth
     orbit found; the identification records the gain and where it came from."""
     with_u, without = fits["loose+control"][1].summary, fits["loose"][1].summary
     assert with_u.missed == 0 and without.missed == 0
-    assert with_u.branch_rms <= 0.5 * without.branch_rms, (with_u, without)
+    assert with_u.branch_rms <= without.branch_rms / 3, (with_u, without)
     ident = fits["loose+control"][0].to_json()["mechanistic"]["identification"]
     assert ident["control"] == {"unit": "N", "gain": 1.0,
                                 "gain_source": "the control is recorded as a force (N)"}
     assert "control" not in fits["loose"][0].to_json()["mechanistic"]["identification"]
 
+
+
+# ---- the wake added to the mechanistic model (--add): the mechanistic stage alone ----
+
+WAKE = (("heave_unsteady_aero", None), ("pitch_unsteady_aero", None))
+
+
+@pytest.fixture(scope="module")
+def wake(tmp_path_factory):
+    """The three fits' mechanistic stage with the wake's lag added (`--add
+    heave_unsteady_aero pitch_unsteady_aero`), judged against the open-loop truth."""
+    return mechanistic_cases(tmp_path_factory.mktemp("wake"), LOOSE, WAKE)
+
+
+def test_with_the_wake_added_the_control_input_recovers_the_non_invasive_fit(wake):
+    """Issue 17's invasive criterion, at the mechanistic model: with the lag the
+    quasi-steady model lacks added as a term of its own, the invasive campaign fitted with
+    the control as an input has its Hopf point and fold within 0.1 m/s of the non-invasive
+    campaign's fit and an error against the open-loop truth at most 1.5 times that one's
+    (measured 0.018 and 0.060 m/s; 0.002 % against 0.040 %). Without the control the same
+    model is measurably worse (measured 1.79 %, its fold 0.64 m/s late). The identification
+    names the effects and where their coefficients came from."""
+    held, with_u, without = (wake[name][0].to_json()
+                             for name in ("held", "loose+control", "loose"))
+    assert held["missed"] == with_u["missed"] == without["missed"] == 0
+    assert abs(with_u["hopf"]["model"] - held["hopf"]["model"]) <= 0.1, (with_u, held)
+    assert abs(with_u["fold"]["model"] - held["fold"]["model"]) <= 0.1, (with_u, held)
+    assert with_u["branch_rms"] <= 1.5 * held["branch_rms"], (with_u, held)
+    assert without["branch_rms"] >= 10 * held["branch_rms"], (without, held)
+    assert abs(without["fold"]["model"] - held["fold"]["model"]) >= 0.3, (without, held)
+    ident = wake["loose+control"][1]
+    assert [e["key"] for e in ident["effects"]] == [k for k, _ in WAKE]
+    assert ident["control"]["gain"] == 1.0
+    added = {n: src for n, src in ident["sources"].items() if "_unsteady_aero[" in n}
+    assert len(added) == 10
+    assert set(added.values()) == {"identified from the orbits (least squares)"}

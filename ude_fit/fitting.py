@@ -28,7 +28,7 @@ from .analysis.diagram import _evaluate, diagram_ranges
 from .analysis.metrics_type import ModelMetrics
 from .data.estimates import estimate_from_data
 from .data.orbit import DataError, OrbitDataset
-from .models.mechanistic import FLUTTER_NOMINAL, parameters_of
+from .models.mechanistic import FLUTTER_NOMINAL
 from .models.parameter_file import MechanisticParameters
 from .models.ude import UDE
 from .training.gp import fit_gp
@@ -248,20 +248,46 @@ def prepare(ds: OrbitDataset, system: str, reference: dict | None, samples: int)
 
 def identify_mechanistic(data: TrainingData, system: str, *, bootstrap: int = 0,
                          seed: int = 0, given: MechanisticParameters | None = None,
-                         free_input: bool = False):
+                         free_input: bool = False, effects: tuple = ()):
     """The mechanistic model from the data: damping and stiffness by least squares bounded
     to their physical signs (never another rig's values), with the user's ``given`` values
-    in their place. The info's ``sources`` says where every parameter came from."""
+    in their place and the library ``effects`` ((key, shape or None) pairs; a missing
+    shape is chosen by cross-validation) added as terms of their own. The info's
+    ``sources`` says where every parameter came from."""
+    from .discovery.explain import choose_shape     # (discovery imports this module)
     base = None
     if given is not None and given.known:          # only the aerofoil has known geometry
         base = {**FLUTTER_NOMINAL, **given.known}
-    mech, ident = identify(data, system, base, fixed=None if given is None else given.fitted,
+    chosen, shape_sources = [], []
+    for key, shape in effects:
+        source = "given" if shape is not None else None
+        if shape is None:
+            shape = choose_shape(data, system, key, added=tuple(chosen), seed=seed)
+            source = None if shape is None else "cross-validation (leave orbits out)"
+        chosen.append((key, shape))
+        shape_sources.append(source)
+    mech, ident = identify(data, system, base, tuple(chosen),
+                           fixed=None if given is None else given.fitted,
                            bootstrap=bootstrap, seed=seed, free_input=free_input)
     ident["method"] = "equation error (least squares, damping and stiffness bounded at 0)"
-    ident["known"] = {n: v for n, v in parameters_of(mech).items()
-                      if n not in ident["parameters"]}
+    if chosen:
+        ident["method"] += ", with " + ", ".join(k for k, _ in chosen) + " added"
+        ident["effects"] = [{"key": k, "shape": v, "shape_source": src}
+                            for (k, v), src in zip(chosen, shape_sources)]
+    ident["known"] = {n: v for n, v in mech.values().items() if n not in ident["parameters"]}
     ident["sources"] = parameter_sources(mech, ident, given)
     return mech, ident
+
+
+def mechanistic_stage(ds: OrbitDataset, data: TrainingData, opts: FitOptions):
+    """A fit's mechanistic identification by equation error: (training data, mechanistic
+    model, identification info). With the control as an input the data come back carrying
+    it as a known heave force (and the gain is identified where it is not known)."""
+    if opts.control_input:
+        return _identify_with_control(ds, data, opts)
+    mech, ident = identify_mechanistic(data, opts.system, given=opts.mechanistic_parameters,
+                                       effects=opts.mechanistic_effects, seed=opts.seed)
+    return data, mech, ident
 
 
 def _identify_with_control(ds: OrbitDataset, data: TrainingData, opts: FitOptions):
@@ -271,14 +297,16 @@ def _identify_with_control(ds: OrbitDataset, data: TrainingData, opts: FitOption
     if ctrl.gain is None:
         raw = with_control(data, ds, 1.0)
         mech, ident = identify_mechanistic(raw, opts.system, given=opts.mechanistic_parameters,
-                                           free_input=True)
+                                           free_input=True, effects=opts.mechanistic_effects,
+                                           seed=opts.seed)
         gain = ident["parameters"].pop(INPUT_GAIN)
         se = ident["std_error"].pop(INPUT_GAIN, None)
         ctrl = ControlInput(ctrl.unit, float(gain), ctrl.source)
         ident["control"] = {**ctrl.to_json(), "gain_std_error": se}
     else:
         mech, ident = identify_mechanistic(with_control(data, ds, ctrl.gain), opts.system,
-                                           given=opts.mechanistic_parameters)
+                                           given=opts.mechanistic_parameters,
+                                           effects=opts.mechanistic_effects, seed=opts.seed)
         ident["control"] = ctrl.to_json()
     return with_control(data, ds, ctrl.gain), mech, ident
 
@@ -287,7 +315,7 @@ def parameter_sources(mech, ident: dict, given: MechanisticParameters | None) ->
     """Every parameter of ``mech`` by name: where its value came from."""
     given_names = set() if given is None else set(given.known) | set(given.fitted)
     out = {}
-    for name in parameters_of(mech):
+    for name in mech.values():
         if name in given_names:
             out[name] = f"user file {given.path}"
         elif name in ident.get("at_bound", ()):
@@ -320,10 +348,8 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
         return _fit_on(mechanistic, ds, data, opts, ranges, ref, ref_source, say, t_start,
                        verbose=progress is not None)
     say(event="stage", stage="mechanistic identification")
-    if opts.control_input:
-        data, mech, ident = _identify_with_control(ds, data, opts)
-    else:
-        mech, ident = identify_mechanistic(data, opts.system, given=opts.mechanistic_parameters)
+    data, mech, ident = mechanistic_stage(ds, data, opts)
+    data = augment(data, mech)      # an added effect's hidden states, along the orbits
     mech_model = UDE(mech)
     if opts.mechanistic == "periodic":
         say(event="stage", stage="mechanistic identification (periodic orbits)")

@@ -41,6 +41,10 @@ class PipelineOptions:
             # the loop's identifications take the data open loop: one fact, one model
             raise ValueError("--control-input applies to ude-fit fit only (the loop fits "
                              "the orbits as open-loop ones)")
+        if self.fit.mechanistic_effects:
+            # the loop chooses the effects itself, from the plain mechanistic model
+            raise ValueError("--add applies to ude-fit fit only (the pipeline's loop adds "
+                             "the effects it finds; ude-fit refine adds named ones)")
         if not isinstance(self.locate_shapes, bool):
             raise ValueError(f"locate_shapes must be true or false, not {self.locate_shapes!r}")
         if not (isinstance(self.min_gain, (int, float)) and math.isfinite(self.min_gain)

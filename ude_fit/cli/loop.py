@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import argparse
 
-from ..discovery.loop import close_loop, fit_udes, parse_add, refine
+from ..discovery.loop import close_loop, fit_udes, refine
+from ..models.library import parse_effects
 from ..report.files import provenance
 from ..report.loop_files import write_loop
 from ..training.options import FitOptions
@@ -83,7 +84,7 @@ def _finish(args, argv, name, ds, result, progress) -> int:
 
 def run_refine(args, argv) -> int:
     try:
-        add = parse_add(args.system, args.add)
+        add = list(parse_effects(args.system, args.add))
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     ds = load_data(args)

@@ -156,6 +156,11 @@ def add_fit_arguments(p) -> None:
                    help="--control-input: newtons per unit of the recorded control (default: "
                    "1 for a control recorded in N, else identified with the mechanistic "
                    "parameters)")
+    p.add_argument("--add", nargs="+", default=[], metavar="EFFECT[=SHAPE]",
+                   help="library effects to add to the mechanistic model as terms of their "
+                   "own, identified with it (see `ude-fit explain`; e.g. the aerofoil's "
+                   "heave_unsteady_aero pitch_unsteady_aero, the wake's lag); SHAPE fixes a "
+                   "freeplay gap or lag time constant, otherwise cross-validation picks it")
     p.add_argument("--mechanistic-params", metavar="FILE.toml",
                    help="the mechanistic model's values you know (TOML, name = number): "
                    "geometry replaces the design values, damping/stiffness given are not "
@@ -178,8 +183,10 @@ def fit_options(args):
     penalties = tuple(kind(getattr(args, kind.option.replace("-", "_"))) for kind in PENALTIES)
     params = (None if args.mechanistic_params is None else
               MechanisticParameters.read(args.mechanistic_params, args.system))
+    from ..models.library import parse_effects
     return FitOptions(
         mechanistic_parameters=params,
+        mechanistic_effects=parse_effects(args.system, args.add),
         system=args.system, approximator=args.approximator, training=args.training,
         starts=args.starts, starts_together=args.starts_together, seed=args.seed,
         mechanistic=args.mechanistic,

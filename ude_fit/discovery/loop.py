@@ -133,29 +133,6 @@ def _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap) -> Stage
     return _stage("mechanistic", UDE(mech), ds, data, ranges, ref, ref_source, ident)
 
 
-def parse_add(system: str, specs) -> list:
-    """``["heave_cubic", "pitch_freeplay=0.01"]`` -> [(key, shape or None)]; ValueError
-    (one line) for an unknown effect, a shape on an effect without one, or a bad number."""
-    out = []
-    for spec in specs:
-        key, sep, val = str(spec).partition("=")
-        e = effect(system, key.strip())
-        shape = None
-        if sep:
-            if not e.shape_name:
-                raise ValueError(f"--add {spec}: {e.key} has no shape parameter")
-            try:
-                shape = float(val)
-            except ValueError:
-                raise ValueError(f"--add {spec}: {val!r} is not a number") from None
-            if not np.isfinite(shape) or shape <= 0:
-                raise ValueError(f"--add {spec}: the {e.shape_name} must be positive")
-        if any(k == e.key for k, _ in out):
-            raise ValueError(f"--add {e.key} given twice")
-        out.append((e.key, shape))
-    return out
-
-
 def refine(ds: OrbitDataset, system: str, add: list, *, reference=None, seed: int = 0,
            bootstrap: int = 200, samples: int = 32, progress=None) -> LoopResult:
     """Add the effects ``add`` ([(key, shape or None)]; a missing shape is chosen by

@@ -287,6 +287,45 @@ def effect(system: str, key: str) -> Effect:
                      f"(known: {', '.join(e.key for e in LIBRARY[system])})")
 
 
+def effect_choice(system: str, key: str, shape: float | None = None, *,
+                  flag: str = "--add", spec: str | None = None) -> tuple[str, float | None]:
+    """An effect to add to the mechanistic model, checked: ``(key, shape or None)`` (None:
+    the shape is chosen from the data, by cross-validation). ValueError (one line, naming
+    ``flag``) for an unknown effect, a shape on an effect without one, or a shape that is
+    not a positive number."""
+    e = effect(system, key)
+    if shape is not None:
+        where = f"{flag} {spec or f'{key}={shape}'}"
+        if not e.shape_name:
+            raise ValueError(f"{where}: {e.key} has no shape parameter")
+        if isinstance(shape, bool) or not isinstance(shape, (int, float)) \
+                or not np.isfinite(shape) or shape <= 0:
+            raise ValueError(f"{where}: the {e.shape_name} must be positive")
+        shape = float(shape)
+    return e.key, shape
+
+
+def parse_effects(system: str, specs, *, flag: str = "--add") -> tuple:
+    """``["heave_cubic", "pitch_freeplay=0.01"]`` -> ((key, shape or None), ...), each
+    checked by :func:`effect_choice`; an effect named twice is a ValueError too."""
+    out = []
+    for spec in specs:
+        key, sep, val = str(spec).partition("=")
+        shape = None
+        if sep:
+            if not effect(system, key.strip()).shape_name:
+                raise ValueError(f"{flag} {spec}: {key.strip()} has no shape parameter")
+            try:
+                shape = float(val)
+            except ValueError:
+                raise ValueError(f"{flag} {spec}: {val!r} is not a number") from None
+        pair = effect_choice(system, key.strip(), shape, flag=flag, spec=str(spec))
+        if any(k == pair[0] for k, _ in out):
+            raise ValueError(f"{flag} {pair[0]} given twice")
+        out.append(pair)
+    return tuple(out)
+
+
 def located_effect(system: str, key: str) -> Effect | None:
     """The generic form of a located shape as an effect (None if ``key`` is not one): a
     class of ``forms`` in one equation with one state as argument."""

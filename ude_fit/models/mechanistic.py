@@ -119,6 +119,11 @@ class MechanisticModel(eqx.Module):
         """Every fitted value by name (added effects' coefficients included)."""
         return {f: float(getattr(self, f)) for f in self.fitted}
 
+    def values(self) -> dict:
+        """Every value by name, known geometry and fitted (added effects' coefficients
+        included)."""
+        return parameters_of(self)
+
     @classmethod
     def from_values(cls, values: dict, geometry: dict | None = None) -> "MechanisticModel":
         """The model with identified ``values`` (names of ``fitted``; others are ignored)

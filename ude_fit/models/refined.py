@@ -93,6 +93,9 @@ class Refined(MechanisticModel):
             out.update(zip(a.names(), np.asarray(a.coefficients).tolist()))
         return out
 
+    def values(self) -> dict:
+        return self.parameters()
+
     def mass(self, param):
         return self.base_model.mass(param)
 

@@ -230,9 +230,9 @@ def augment(data: TrainingData, mech) -> TrainingData:
     """``data`` with the hidden states of a refined model appended to every sample: each
     lag's steady periodic solution along the measured orbit (exact by Fourier series), so
     a model with hidden states can start, and be compared, on the data's orbits."""
-    if not mech.n_hidden:
-        return data
     ys = np.asarray(data.ys)
+    if not mech.n_hidden or ys.shape[2] == 2 * mech.n_dof + mech.n_hidden:   # (already)
+        return data
     Z = mech.hidden_states(states_of(data, mech.system)).reshape(ys.shape[0], ys.shape[1], -1)
     ys2 = np.concatenate([ys, Z], axis=2)
     y_scale = np.sqrt(np.mean(ys2 ** 2, axis=(0, 1)))

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from .._systems import system_kind
+from ..models.library import effect_choice
 from ..models.mechanistic import SYSTEMS
 from ..models.parameter_file import MechanisticParameters
 from .penalties import Penalty
@@ -197,6 +198,9 @@ class FitOptions:
     # control_gain: N per unit of the record (None: 1 for a record in N, else identified)
     control_input: bool = False
     control_gain: float | None = None
+    # library effects added to the mechanistic model as terms of their own, identified with
+    # it (--add EFFECT[=SHAPE]): ((key, shape or None), ...); None: chosen from the data
+    mechanistic_effects: tuple = ()
 
     def __post_init__(self):
         if self.system not in SYSTEMS:
@@ -276,6 +280,16 @@ class FitOptions:
                     and math.isfinite(g) and g != 0):
                 raise ValueError(f"--control-gain must be a finite number other than 0, "
                                  f"not {g!r}")
+        effects = []
+        for pair in self.mechanistic_effects:
+            if not (isinstance(pair, (tuple, list)) and len(pair) == 2):
+                raise ValueError(f"mechanistic_effects: (effect, shape or None) pairs, not "
+                                 f"{pair!r}")
+            pair = effect_choice(self.system, *pair)
+            if any(k == pair[0] for k, _ in effects):
+                raise ValueError(f"--add {pair[0]} given twice")
+            effects.append(pair)
+        object.__setattr__(self, "mechanistic_effects", tuple(effects))
         if not isinstance(self.starts_together, bool):
             raise ValueError(f"starts_together must be True or False, not "
                              f"{self.starts_together!r}")
@@ -299,6 +313,8 @@ class FitOptions:
                 nn_only.append(f"--correction-form {self.train.form}")
             if self.train.param_dependence != "input":
                 nn_only.append("--param-dependence polynomial")
+            if self.mechanistic_effects:
+                nn_only.append("--add")
             if nn_only:
                 raise ValueError("/".join(nn_only) + " apply to --approximator nn only")
 
