@@ -87,6 +87,8 @@ def test_the_fit_takes_its_own_flags():
     (["fit", "--add", "pitch_freeplay=0"], "--add pitch_freeplay=0: the delta (rad) must be "
      "positive"),
     (["fit", "--add", "heave_cubic", "heave_cubic"], "--add heave_cubic given twice"),
+    (["fit", "--add", "pitch_freeplay"], "--add pitch_freeplay: give its delta (rad) "
+     "(pitch_freeplay=VALUE)"),
     (["fit", "--add", "heave_cubic", "--approximator", "gp"],
      "--add apply to --approximator nn only"),
     (["pipeline", "--add", "heave_cubic"], "--add applies to ude-fit fit only"),

@@ -251,29 +251,20 @@ def identify_mechanistic(data: TrainingData, system: str, *, bootstrap: int = 0,
                          free_input: bool = False, effects: tuple = ()):
     """The mechanistic model from the data: damping and stiffness by least squares bounded
     to their physical signs (never another rig's values), with the user's ``given`` values
-    in their place and the library ``effects`` ((key, shape or None) pairs; a missing
-    shape is chosen by cross-validation) added as terms of their own. The info's
-    ``sources`` says where every parameter came from."""
-    from .discovery.explain import choose_shape     # (discovery imports this module)
+    in their place and the library ``effects`` ((key, shape) pairs, the shape None for an
+    effect without one) added as terms of their own. The info's ``sources`` says where
+    every parameter came from."""
     base = None
     if given is not None and given.known:          # only the aerofoil has known geometry
         base = {**FLUTTER_NOMINAL, **given.known}
-    chosen, shape_sources = [], []
-    for key, shape in effects:
-        source = "given" if shape is not None else None
-        if shape is None:
-            shape = choose_shape(data, system, key, added=tuple(chosen), seed=seed)
-            source = None if shape is None else "cross-validation (leave orbits out)"
-        chosen.append((key, shape))
-        shape_sources.append(source)
-    mech, ident = identify(data, system, base, tuple(chosen),
+    chosen = tuple(effects)
+    mech, ident = identify(data, system, base, chosen,
                            fixed=None if given is None else given.fitted,
                            bootstrap=bootstrap, seed=seed, free_input=free_input)
     ident["method"] = "equation error (least squares, damping and stiffness bounded at 0)"
     if chosen:
         ident["method"] += ", with " + ", ".join(k for k, _ in chosen) + " added"
-        ident["effects"] = [{"key": k, "shape": v, "shape_source": src}
-                            for (k, v), src in zip(chosen, shape_sources)]
+        ident["effects"] = [{"key": k, "shape": v} for k, v in chosen]
     ident["known"] = {n: v for n, v in mech.values().items() if n not in ident["parameters"]}
     ident["sources"] = parameter_sources(mech, ident, given)
     return mech, ident
@@ -286,7 +277,7 @@ def mechanistic_stage(ds: OrbitDataset, data: TrainingData, opts: FitOptions):
     if opts.control_input:
         return _identify_with_control(ds, data, opts)
     mech, ident = identify_mechanistic(data, opts.system, given=opts.mechanistic_parameters,
-                                       effects=opts.mechanistic_effects, seed=opts.seed)
+                                       effects=opts.mechanistic_effects)
     return data, mech, ident
 
 
@@ -297,8 +288,7 @@ def _identify_with_control(ds: OrbitDataset, data: TrainingData, opts: FitOption
     if ctrl.gain is None:
         raw = with_control(data, ds, 1.0)
         mech, ident = identify_mechanistic(raw, opts.system, given=opts.mechanistic_parameters,
-                                           free_input=True, effects=opts.mechanistic_effects,
-                                           seed=opts.seed)
+                                           free_input=True, effects=opts.mechanistic_effects)
         gain = ident["parameters"].pop(INPUT_GAIN)
         se = ident["std_error"].pop(INPUT_GAIN, None)
         ctrl = ControlInput(ctrl.unit, float(gain), ctrl.source)
@@ -306,7 +296,7 @@ def _identify_with_control(ds: OrbitDataset, data: TrainingData, opts: FitOption
     else:
         mech, ident = identify_mechanistic(with_control(data, ds, ctrl.gain), opts.system,
                                            given=opts.mechanistic_parameters,
-                                           effects=opts.mechanistic_effects, seed=opts.seed)
+                                           effects=opts.mechanistic_effects)
         ident["control"] = ctrl.to_json()
     return with_control(data, ds, ctrl.gain), mech, ident
 

@@ -159,8 +159,9 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--add", nargs="+", default=[], metavar="EFFECT[=SHAPE]",
                    help="library effects to add to the mechanistic model as terms of their "
                    "own, identified with it (see `ude-fit explain`; e.g. the aerofoil's "
-                   "heave_unsteady_aero pitch_unsteady_aero, the wake's lag); SHAPE fixes a "
-                   "freeplay gap or lag time constant, otherwise cross-validation picks it")
+                   "heave_unsteady_aero pitch_unsteady_aero, the wake's lag); an effect "
+                   "with a shape (a freeplay gap, a lag time constant) needs it as =SHAPE "
+                   "(ude-fit refine chooses it by cross-validation)")
     p.add_argument("--mechanistic-params", metavar="FILE.toml",
                    help="the mechanistic model's values you know (TOML, name = number): "
                    "geometry replaces the design values, damping/stiffness given are not "

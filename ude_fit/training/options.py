@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from .._systems import system_kind
-from ..models.library import effect_choice
+from ..models.library import effect, effect_choice
 from ..models.mechanistic import SYSTEMS
 from ..models.parameter_file import MechanisticParameters
 from .penalties import Penalty
@@ -286,6 +286,12 @@ class FitOptions:
                 raise ValueError(f"mechanistic_effects: (effect, shape or None) pairs, not "
                                  f"{pair!r}")
             pair = effect_choice(self.system, *pair)
+            shape_name = effect(self.system, pair[0]).shape_name
+            if shape_name and pair[1] is None:
+                # (the cross-validated choice is the discovery layer's: ude-fit refine)
+                raise ValueError(f"--add {pair[0]}: give its {shape_name} "
+                                 f"({pair[0]}=VALUE); ude-fit refine chooses it by "
+                                 "cross-validation")
             if any(k == pair[0] for k, _ in effects):
                 raise ValueError(f"--add {pair[0]} given twice")
             effects.append(pair)
