@@ -10,9 +10,19 @@ from pathlib import Path
 
 import pytest
 
-from rig_sim.harness import PtyPair, RigProcess
-
 REPO = Path(__file__).resolve().parents[1]
+
+# XLA executables kept on disk and shared by the session's workers, modules and the
+# subprocesses they start (which inherit the environment): each module's fits compile the
+# same shooting losses, and a module's in-memory cache is let go after it (below). Every
+# executable is kept however fast it compiled; a size bound turns on JAX's file lock, so
+# two workers writing one entry cannot tear it. Results are the same as compiling afresh.
+# Set before anything imports jax, which reads these at import.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(REPO / ".pytest_cache" / "jax"))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(4 << 30))
+
+from rig_sim.harness import PtyPair, RigProcess  # noqa: E402  (after the cache settings)
 
 
 @pytest.fixture
