@@ -23,6 +23,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+# the sequential fits run the command line, whose on-disk cache of compiled code the sweep's
+# workers do not use: off here, so both sides compile (ude_fit/cli/compile_cache.py)
+os.environ["UDE_FIT_COMPILE_CACHE"] = ""
 
 
 def _fleet_file(work: Path, name: str, seeds: list[int]) -> Path:

@@ -27,6 +27,11 @@ import time
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from ude_fit import cli  # noqa: E402
+from ude_fit.cli.compile_cache import ENV as COMPILE_CACHE  # noqa: E402
+
+# wall times include compilation, as the figures in docs/benchmarks.md always have: the
+# command line's on-disk cache of compiled code is off here (unless JAX is given one)
+os.environ[COMPILE_CACHE] = ""
 
 DEFAULT_DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "lee2020",
                             "model2")

@@ -3,7 +3,8 @@ per branch, 16 starts trained as one vectorised ensemble and one after another (
 training and compile time, each start's loss and branch error), periodic-orbit against trajectory training, and how the error and the
 apparent Hopf point move with measurement noise for the NN and the GP corrections.
 
-    python3 benchmarks/ude_benchmark.py [--quick] [--only ensemble|step] [--starts N] [--out F.json]
+    python3 benchmarks/ude_benchmark.py [--quick] [--only ensemble|step|cache] [--starts N]
+                                        [--out F.json]
 
 Data: the aerofoil rig's true limit cycles written in the campaign layout by the test fixture
 (tests/ude_fixtures.py), σ = 0 (averaged truth) or σ > 0 (a held orbit, noisy raw record,
@@ -57,6 +58,9 @@ def _child(spec: dict) -> dict:
     """Run one fit in this (fresh) process; returns its figures."""
     t_import = time.perf_counter()
     compiling = _count_compilation()
+    if spec.get("compile_cache"):       # the command line's on-disk cache, in this folder
+        from ude_fit.cli.compile_cache import ENV, use_compile_cache
+        use_compile_cache({ENV: spec["compile_cache"]})
     from ude_fit import FitOptions, TrainConfig, fit, load
     from ude_fit.analysis.continuation import trace_flutter
     ds = load([spec["data"]], "flutter")
@@ -129,7 +133,7 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=1, help="repeats of the timed fit (median)")
     ap.add_argument("--starts", type=int, default=16,
                     help="starts of the ensemble figure (default 16)")
-    ap.add_argument("--only", choices=("ensemble", "step"),
+    ap.add_argument("--only", choices=("ensemble", "step", "cache"),
                     help="only this figure (and the data it needs)")
     ap.add_argument("--out", help="also write the JSON here")
     ap.add_argument("--child", help=argparse.SUPPRESS)
@@ -158,6 +162,10 @@ def main() -> int:
         result["periodic_step"] = _periodic_step(files[("10", 0.0)])
         print(json.dumps(result, indent=2))
         return 0
+    if a.only == "cache":
+        result["compile_cache"] = _compile_cache(files[("10", 0.0)], truth)
+        print(json.dumps(result, indent=2))
+        return 0
     if a.only != "ensemble":
         _single_and_comparisons(a, files, truth, starts, result)
         result["periodic_step"] = _periodic_step(files[("10", 0.0)])
@@ -184,6 +192,19 @@ def main() -> int:
         with open(a.out, "w") as fh:
             fh.write(text + "\n")
     return 0
+
+
+def _compile_cache(path: str, truth: dict) -> dict:
+    """The same one-start fit (the defaults) in two fresh processes sharing an empty
+    on-disk compile cache (ude_fit/cli/compile_cache.py): cold, then warm."""
+    folder = tempfile.mkdtemp(prefix="ude_bench_xla_")
+    runs = [_run_child({"data": path, "approximator": "nn", "training": "periodic",
+                        "starts": 1, "truth": truth, "mechanistic": "equation",
+                        "compile_cache": folder}) for _ in range(2)]
+    keys = ("seconds_total", "seconds_compiling", "cpu_seconds")
+    return {"cold": {k: runs[0].get(k) for k in keys}, "warm": {k: runs[1].get(k) for k in keys},
+            "wall_ratio_warm_to_cold": runs[1]["seconds_total"] / runs[0]["seconds_total"],
+            "same_result": runs[0]["ude"] == runs[1]["ude"], "ude": runs[1]["ude"]}
 
 
 def _periodic_step(path: str, repeats: int = 20) -> dict:

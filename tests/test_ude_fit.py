@@ -7,6 +7,7 @@ One 5-start fit serves the module (run in-process, so compiled functions are sha
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -18,6 +19,7 @@ from ude_fit import (DataError, Diverged, FitOptions, TrainConfig, fit, hopf_poi
                      load_model)
 from ude_fit import fitting as fit_module
 from ude_fit import cli
+from ude_fit.cli import compile_cache
 from ude_fit.training.penalties import EnergyRising, WeightDecay
 from ude_fit.training.optimise import minimize
 
@@ -118,6 +120,46 @@ def test_diagram_command_retraces_a_saved_model(flutter_fit, tmp_path):
     hopf = saved["diagram"]["flutter"]["hopf"]["param"]
     assert hopf == pytest.approx(flutter_fit["metrics"]["mechanistic"]["hopf"]["model"],
                                  rel=1e-8)
+
+
+def test_compiled_code_is_kept_between_runs_and_changes_nothing(flutter_fit, tmp_path):
+    """The command line's compile cache (ude_fit/cli/compile_cache.py) in a folder of its
+    own: the first run fills it, the second finds every executable there (it writes
+    nothing new) and traces the same diagram to the last digit."""
+    cache = tmp_path / "xla"
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    env[compile_cache.ENV] = str(cache)
+    diagrams, entries = [], []
+    for k in range(2):
+        out = tmp_path / f"run{k}"
+        r = subprocess.run([sys.executable, "-m", "ude_fit.cli", "diagram",
+                            str(flutter_fit["out"] / "mechanistic.eqx"), "--retrace",
+                            "--out", str(out)], capture_output=True, text=True, timeout=300,
+                           env=env)
+        assert r.returncode == 0, r.stderr
+        diagrams.append(json.loads((out / "mechanistic_diagram.json").read_text())["diagram"])
+        entries.append(sorted(p.name for p in cache.glob("*-cache")))
+    assert entries[0] and entries[1] == entries[0]
+    assert diagrams[1] == diagrams[0]
+
+
+def test_the_compile_cache_folder_and_its_failure(tmp_path, capsys):
+    assert compile_cache.cache_dir({compile_cache.ENV: ""}) is None       # turned off
+    assert compile_cache.cache_dir({compile_cache.ENV: str(tmp_path)}) == tmp_path
+    xdg = compile_cache.cache_dir({"XDG_CACHE_HOME": str(tmp_path)})
+    assert xdg == tmp_path / "ude-fit" / "xla"
+    # a folder that cannot be made costs only speed, and one line says so
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    given = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", None)
+    try:
+        assert compile_cache.use_compile_cache({compile_cache.ENV: str(blocker / "xla")}) is None
+        assert jax.config.jax_compilation_cache_dir is None
+    finally:
+        jax.config.update("jax_compilation_cache_dir", given)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not kept between runs" in err and "a_file" in err
 
 
 # ---- bad input: one line, status 2 -------------------------------------------------------

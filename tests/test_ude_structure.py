@@ -6,6 +6,7 @@ imports neither the rig nor the controller."""
 from __future__ import annotations
 
 import ast
+import os
 import subprocess
 import sys
 
@@ -31,10 +32,14 @@ def test_ude_fit_layers_import_only_downwards():
 
 
 def test_importing_ude_fit_leaves_jax_settings_alone():
-    code = ("import ude_fit, ude_fit.cli, jax\n"
-            "assert not jax.config.jax_enable_x64, 'float64 switched on by an import'\n")
+    code = ("import ude_fit, ude_fit.cli, ude_fit.cli.compile_cache, jax\n"
+            "assert not jax.config.jax_enable_x64, 'float64 switched on by an import'\n"
+            "assert not jax.config.jax_compilation_cache_dir, 'a compile cache set by an "
+            "import'\n")
+    # without the test session's own cache setting (tests/conftest.py)
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                       cwd=REPO, timeout=120)
+                       cwd=REPO, timeout=120, env=env)
     assert r.returncode == 0, r.stderr
 
 

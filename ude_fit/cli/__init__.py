@@ -12,7 +12,9 @@
 One module per subcommand: it parses, calls the library and prints. User mistakes (a bad
 file, an empty dataset, a bad option) end with one line on stderr and exit status 2,
 before anything is written; a fit that keeps no UDE (every start diverged, or no start's
-diagram reaches a measured point) ends with status 1 after writing what it has, and says which. The command line runs JAX in float64 (importing ude_fit does not).
+diagram reaches a measured point) ends with status 1 after writing what it has, and says
+which. The command line runs JAX in float64 and keeps compiled code between runs
+(:mod:`.compile_cache`); importing ude_fit does neither.
 """
 
 from __future__ import annotations
@@ -49,9 +51,11 @@ def main(argv=None) -> int:
     import jax
     jax.config.update("jax_enable_x64", True)   # fitting and continuation need float64
     from ..data import DataError
+    from .compile_cache import use_compile_cache
 
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    use_compile_cache()
     try:
         return COMMANDS[args.command](args, argv)
     except (UsageError, DataError) as exc:
