@@ -8,12 +8,14 @@ Where: ``$UDE_FIT_COMPILE_CACHE`` (set it empty to turn the cache off), else
 ``$XDG_CACHE_HOME/ude-fit/xla``, else ``~/.cache/ude-fit/xla``. A directory JAX is already
 given (``$JAX_COMPILATION_CACHE_DIR``) is left as it is. The cache holds at most
 ``MAX_BYTES``, least recently used entries going first; the bound also makes JAX lock
-the directory, so runs at the same time cannot tear an entry. Importing ude_fit does
-none of this; the command line does, as it switches on float64.
+the directory (with the filelock package, a dependency), so runs at the same time
+cannot tear an entry. Importing ude_fit does none of this; the command line does, as it
+switches on float64.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import sys
 from pathlib import Path
@@ -41,13 +43,22 @@ def use_compile_cache(environ=os.environ) -> Path | None:
     where = cache_dir(environ)
     if where is None:
         return None
+    if importlib.util.find_spec("filelock") is None:    # JAX locks a bounded cache with it
+        return _not_kept(where, "the filelock package is not installed")
     try:
         where.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        print(f"ude-fit: note: compiled code is not kept between runs ({where}: "
-              f"{exc.strerror or exc}; set {ENV} to another folder)", file=sys.stderr)
-        return None
+        return _not_kept(where, f"{exc.strerror or exc}; set {ENV} to another folder")
+    try:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+    except AttributeError as exc:                       # a JAX without these settings
+        return _not_kept(where, str(exc))
     jax.config.update("jax_compilation_cache_dir", str(where))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
     return where
+
+
+def _not_kept(where: Path, why: str) -> None:
+    print(f"ude-fit: note: compiled code is not kept between runs ({where}: {why})",
+          file=sys.stderr)
+    return None
