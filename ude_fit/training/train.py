@@ -84,8 +84,32 @@ def _mech_leaves(mech):
             + tuple(a.coefficients for a in mech.effects))
 
 
-def _mech_with(mech, sizes, base, scale, delta):
-    flat = base + scale * delta
+# the smallest positive value a sign-bounded parameter can take in the periodic refinement,
+# in units of its scale (|start value|, or 1 where it starts at its bound 0)
+_POSITIVE_FLOOR = 1e-3
+
+
+def _positive_part(u):
+    """A smooth map of the real line onto the positive numbers, u for u >> floor."""
+    return 0.5 * (u + jnp.sqrt(u * u + _POSITIVE_FLOOR ** 2))
+
+
+def _positive_mask(mech, sizes) -> np.ndarray:
+    """True for the entries of the flat parameter vector no passive structure has at or
+    below zero (the model class's ``must_be_positive``), as the equation-error
+    identification bounds them."""
+    names = tuple(mech.base.fitted) + ("",) * len(mech.effects)
+    positive = set(mech.must_be_positive)
+    return np.concatenate([np.full(int(np.prod(shp)) if shp else 1, n in positive)
+                           for n, shp in zip(names, sizes)])
+
+
+def _mech_with(mech, sizes, base, scale, delta, positive):
+    """The model at ``delta``: free entries move as base + scale·delta; sign-bounded ones
+    as scale·p(u₀ + delta), with p :func:`_positive_part` and u₀ its start."""
+    v0 = jnp.maximum(base / scale, _POSITIVE_FLOOR)
+    u0 = v0 - _POSITIVE_FLOOR ** 2 / (4.0 * v0)          # p(u0) = v0
+    flat = jnp.where(positive, scale * _positive_part(u0 + delta), base + scale * delta)
     vals, i = [], 0
     for shp in sizes:
         k = int(np.prod(shp)) if shp else 1
@@ -94,30 +118,32 @@ def _mech_with(mech, sizes, base, scale, delta):
     return eqx.tree_at(_mech_leaves, mech, tuple(vals))
 
 
-def _mech_periodic_loss(params, mech, sizes, base, scale, data, cfg):
-    model = UDE(_mech_with(mech, sizes, base, scale, params["delta"]))
+def _mech_periodic_loss(params, mech, sizes, base, scale, positive, data, cfg):
+    model = UDE(_mech_with(mech, sizes, base, scale, params["delta"], positive))
     return periodic_objective(model, params, data, cfg)
 
 
 def refine_mechanistic(model: UDE, data: TrainingData, *, cfg: TrainConfig, progress=None):
     """Output-error identification of the mechanistic parameters: the equation-error
     estimate (or any start) refined so that the model has closed orbits through the
-    measured ones with the measured stability. Returns (UDE without correction, info).
-    ``data`` must carry the model's hidden states, if it has any (``augment``)."""
+    measured ones with the measured stability. The damping and stiffness values the
+    equation error bounds at zero stay positive here too (:func:`_mech_with`).
+    Returns (UDE without correction, info). ``data`` must carry the model's hidden states, if it has any (``augment``)."""
     cfg = cfg.for_system(model.system)
     mech = model.mech
     leaves = _mech_leaves(mech)
     sizes = tuple(tuple(jnp.shape(x)) for x in leaves)
     base = jnp.concatenate([jnp.ravel(jnp.asarray(x, float)) for x in leaves])
     scale = jnp.where(jnp.abs(base) > 0, jnp.abs(base), 1.0)
+    positive = jnp.asarray(_positive_mask(mech, sizes))
     params = {"delta": jnp.zeros(base.size), "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
     if model.mech.autonomous:                  # the period is an unknown too
         params["dT"] = jnp.zeros(data.period.shape)
     params, v = minimize(_mech_periodic_loss, params,
-                         (mech, sizes, base, scale, data, cfg),
+                         (mech, sizes, base, scale, positive, data, cfg),
                          adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
                          lr=cfg.learning_rate, progress=progress, stage="mechanistic")
-    refined = _mech_with(mech, sizes, base, scale, params["delta"])
+    refined = _mech_with(mech, sizes, base, scale, params["delta"], positive)
     return UDE(refined), {"loss": v}
 
 
