@@ -26,12 +26,14 @@ from .analysis.backbone import BackboneFit, backbone_of
 from .analysis.adequacy import data_scatter, error_bar, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
 from .analysis.metrics_type import ModelMetrics
+from .data.one_fold import fit_one_fold
 from .data.estimates import estimate_from_data
 from .data.orbit import DataError, OrbitDataset
 from .models.mechanistic import FLUTTER_NOMINAL
 from .models.parameter_file import MechanisticParameters
 from .models.ude import UDE
 from .training.gp import fit_gp
+from .training.guides import guide_orbits, with_guides
 from .training.control import ControlInput, control_input, with_control
 from .training.identify import (INPUT_GAIN, TrainingData, augment, identify, residual_forces,
                                 training_data)
@@ -103,6 +105,7 @@ class FitResult:
     data: dict = field(default_factory=dict)        # what metrics.json records of the data
     fold_required: bool = False     # the data needs a fold (see adequacy.needs_fold)
     backbone: BackboneFit | None = None
+    guides: dict | None = None      # the one-fold curve and guide orbits, if trained on
     seconds: float = 0.0
 
     @property
@@ -155,6 +158,7 @@ class FitResult:
                                      "fold_required": self.fold_required},
                        "records": [s.to_json() for s in self.starts]},
             "backbone": None if self.backbone is None else self.backbone.to_json(),
+            "guides": self.guides,
             "ranges": self.ranges,
             "seconds": self.seconds,
         }
@@ -362,6 +366,9 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                  "std_error": {}}
     data = augment(data, mech_model.mech)
     scales = np.asarray(data.y_scale)
+    guides = None
+    if opts.guide_orbits:
+        data, guides = _guided(ds, data, mech_model.mech, opts)
     say(event="stage", stage="mechanistic diagram")
     mech_diag, mech_m = _evaluate(mech_model, ds, ranges, scales, ref, ref_source)
     say(event="model", which="mechanistic", metrics=mech_m)
@@ -409,4 +416,18 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                                "ude": None if best is None else best.diagram},
                      mechanistic_metrics=mech_m, scales=scales, ranges=ranges, starts=starts,
                      kept=best, data=data_record, fold_required=fold_needed,
-                     backbone=backbone, seconds=time.perf_counter() - t_start)
+                     backbone=backbone, guides=guides, seconds=time.perf_counter() - t_start)
+
+
+def _guided(ds: OrbitDataset, data: TrainingData, mech, opts: FitOptions):
+    """``data`` with the guide orbits of the one-fold curve through ``ds``, and the record
+    metrics.json keeps of them."""
+    curve = fit_one_fold(ds, ds.kind.amplitude_window)
+    if curve is None:
+        raise DataError("--guide-orbits needs stable and unstable points (the guides follow "
+                        "a curve with its fold between them)")
+    guide_ds = guide_orbits(ds, curve, opts.guide_orbits)
+    record = {"curve": curve.to_json(), "weight": opts.guide_weight,
+              "orbits": [{"parameter": o.parameter, "amplitude": o.amplitude,
+                          "stable": o.stable} for o in guide_ds]}
+    return with_guides(data, guide_ds, mech, opts.guide_weight), record

@@ -148,6 +148,16 @@ def add_fit_arguments(p) -> None:
                    "point first, then add the orbits one at a time in the order a branch "
                    "with one fold meets them (unstable, then stable, each by airspeed), "
                    "before the stage on all of them (experimental; docs/fitting.md)")
+    p.add_argument("--guide-orbits", type=positive_int("--guide-orbits", 0), default=0,
+                   metavar="N",
+                   help="aerofoil, periodic training (experimental): fit a curve with one "
+                   "Hopf point and one fold to the points, and train on N of its orbits as "
+                   "well, evenly spaced in amplitude from the smallest orbit's to 15 %% above "
+                   "the largest orbit, their heave only, each at --guide-weight "
+                   "(docs/fitting.md; default 0: none)")
+    p.add_argument("--guide-weight", type=positive_float("--guide-weight"), default=0.3,
+                   metavar="W", help="--guide-orbits: each guide's weight against a measured "
+                   "orbit's 1 (default 0.3)")
     p.add_argument("--control-input", action="store_true",
                    help="aerofoil: the recorded holding control as a known force on heave, "
                    "so a point held with some control is fitted as an orbit of the "
@@ -192,6 +202,7 @@ def fit_options(args):
         starts=args.starts, starts_together=args.starts_together, seed=args.seed,
         mechanistic=args.mechanistic,
         control_input=args.control_input, control_gain=args.control_gain,
+        guide_orbits=args.guide_orbits, guide_weight=args.guide_weight,
         reference_hopf=args.reference_hopf, reference_fold=args.reference_fold,
         train=TrainConfig(width=args.width, depth=args.depth, param_scale=args.param_scale,
                           param_dependence=args.param_dependence,

@@ -25,6 +25,19 @@ def _backbone(bb: dict | None, unit: str) -> list[str]:
             f"{bb['hopf']:.3f} ± {bb['hopf_std']:.3f} {unit}, {fold}; branch amplitude error "
             f"RMS {pct(bb['branch_rms'])}, max {pct(bb['branch_max'])}, "
             f"{bb['missed']} missed."]
+def _guides(g: dict | None, unit: str) -> list[str]:
+    """The guide orbits the UDE trained on (ude_fit.training.guides), if any."""
+    if not g:
+        return []
+    c = g["curve"]
+    return ["", f"Guide orbits (`--guide-orbits`): {len(g['orbits'])} orbits of a curve with "
+            f"one Hopf point and one fold fitted to the points (Hopf {c['hopf']:.3f} {unit}, "
+            f"fold {c['fold']:.3f} {unit}; the points' amplitude error about it RMS "
+            f"{pct(c['amplitude_rms'])}), their heave only, each at weight {g['weight']:g} "
+            "against a measured orbit's 1. They shape the training only; every figure here "
+            "is against the measured points."]
+
+
 def _unknown_stability(d: dict) -> list[str]:
     unknown = d.get("unknown_stability") or []
     if not unknown:
@@ -100,6 +113,7 @@ def render(metrics: dict, figures: dict) -> str:
                          + (f", with folds at {', '.join(f'{x:.3f}' for x in mm['isola_folds'])}"
                             if mm.get("isola_folds") else "") + ".")
         L += _backbone(metrics.get("backbone"), unit)
+        L += _guides(metrics.get("guides"), unit)
     else:
         L += ["", "### Per forcing frequency", "",
               "| frequency (Hz) | mechanistic RMS | UDE RMS | mechanistic max | UDE max | "

@@ -41,10 +41,25 @@ class TrainingData(eqx.Module):
     amp_max: float = eqx.field(static=True)
     # (n_orbits,) each orbit's weight in the periodic objective; None: all alike
     weight: jax.Array | None = None
+    # (n_orbits, n_state) each state's weight in an orbit's misfit; None: all alike
+    state_weight: jax.Array | None = None
+    # how many leading orbits are measurements; the rest guide the fit (None: all measured)
+    measured: int | None = eqx.field(static=True, default=None)
 
     @property
     def n_orbits(self) -> int:
         return int(self.ys.shape[0])
+
+    def measurements(self) -> "TrainingData":
+        """The measured orbits alone: what the equation stage, the feature scaling and the
+        regularity conditions are taken from (a guide orbit's accelerations and pitch are
+        stand-ins, :mod:`.guides`)."""
+        if self.measured is None:
+            return self
+        take = lambda x: x[:self.measured]
+        return TrainingData(take(self.ys), take(self.qdd), take(self.period),
+                            jax.tree_util.tree_map(take, self.drive), take(self.label),
+                            self.y_scale, self.amp_max)
 
     def only(self, active) -> "TrainingData":
         """The orbits where ``active`` (a boolean mask) at weight 1, every other at weight 0
@@ -58,7 +73,9 @@ class TrainingData(eqx.Module):
         take = lambda x: x[idx]
         return TrainingData(take(self.ys), take(self.qdd), take(self.period),
                             jax.tree_util.tree_map(take, self.drive), take(self.label),
-                            self.y_scale, self.amp_max, jnp.asarray(active, float))
+                            self.y_scale, self.amp_max, jnp.asarray(active, float),
+                            None if self.state_weight is None else take(self.state_weight),
+                            self.measured)
 
 
 def training_data(ds, n: int = 32) -> TrainingData:
@@ -237,8 +254,10 @@ def augment(data: TrainingData, mech) -> TrainingData:
     ys2 = np.concatenate([ys, Z], axis=2)
     y_scale = np.sqrt(np.mean(ys2 ** 2, axis=(0, 1)))
     y_scale = np.where(y_scale > 0, y_scale, 1.0)
+    if data.measured is not None:
+        raise ValueError("augment: the hidden states go in before any guide orbit")
     return TrainingData(jnp.asarray(ys2), data.qdd, data.period, data.drive, data.label,
-                        jnp.asarray(y_scale), data.amp_max)
+                        jnp.asarray(y_scale), data.amp_max, data.weight)
 
 
 def residual_forces(model: UDE, data: TrainingData):

@@ -75,21 +75,24 @@ def periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
     n = data.ys.shape[1]
     autonomous = model.mech.autonomous
 
-    def one(ys, y0, T, drive, label):
+    state_weight = (jnp.ones(data.ys.shape[::2]) if data.state_weight is None
+                    else data.state_weight)
+
+    def one(ys, y0, T, drive, label, sw):
         if autonomous:
             # an imposed input (the holding control, when given) is periodic in the
             # orbit's own period, which is an unknown here
             drive = eqx.tree_at(lambda d: d.omega, drive, 2.0 * jnp.pi / T)
         yT, sim, M = _simulate_with_monodromy(model, y0, T, drive, n, sub)
         s = model.mech.stability_indicator(M)
-        fit = jnp.mean(((sim - ys) / data.y_scale) ** 2)
+        fit = jnp.mean(((sim - ys) / data.y_scale) ** 2 * sw) / jnp.mean(sw)
         close = jnp.sum(((yT - y0) / data.y_scale) ** 2)
         stab = jnp.where(label == 0, 0.0, jax.nn.relu(margin - label * s) ** 2)
         return fit + w_close * close + w_stab * stab
 
     y0 = data.ys[:, 0, :] + params["dy0"] * data.y_scale
     T = data.period * (1.0 + params["dT"]) if autonomous else data.period
-    per = jax.vmap(one)(data.ys, y0, T, data.drive, data.label)
+    per = jax.vmap(one)(data.ys, y0, T, data.drive, data.label, state_weight)
     if data.weight is None:
         return jnp.mean(per)
     return jnp.sum(data.weight * per) / jnp.sum(data.weight)

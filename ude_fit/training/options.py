@@ -201,6 +201,10 @@ class FitOptions:
     # library effects added to the mechanistic model as terms of their own, identified with
     # it (--add EFFECT[=SHAPE]): ((key, shape or None), ...); None: chosen from the data
     mechanistic_effects: tuple = ()
+    # orbits of a one-fold curve fitted to the points, trained on between and beyond the
+    # measured ones (training.guides; experimental, aerofoil), each at guide_weight
+    guide_orbits: int = 0
+    guide_weight: float = 0.3
 
     def __post_init__(self):
         if self.system not in SYSTEMS:
@@ -296,6 +300,7 @@ class FitOptions:
                 raise ValueError(f"--add {pair[0]} given twice")
             effects.append(pair)
         object.__setattr__(self, "mechanistic_effects", tuple(effects))
+        self._check_guides()
         if not isinstance(self.starts_together, bool):
             raise ValueError(f"starts_together must be True or False, not "
                              f"{self.starts_together!r}")
@@ -325,6 +330,29 @@ class FitOptions:
                 raise ValueError("/".join(nn_only) + " apply to --approximator nn only")
 
         object.__setattr__(self, "train", self._defaults_that_apply())
+
+    def _check_guides(self):
+        n, w = self.guide_orbits, self.guide_weight
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0 or n == 1:
+            raise ValueError(f"--guide-orbits must be 0 (none) or an integer at least 2, "
+                             f"not {n!r}")
+        if isinstance(w, bool) or not isinstance(w, (int, float)) or not (
+                math.isfinite(w) and w > 0):
+            raise ValueError(f"--guide-weight must be a number above 0, not {w!r}")
+        if not n:
+            return
+        if not system_kind(self.system).autonomous:
+            raise ValueError("--guide-orbits applies to --system flutter only (the curve is "
+                             "a self-excited branch's, from a Hopf point through one fold)")
+        if self.approximator != "nn" or self.training != "periodic":
+            raise ValueError("--guide-orbits applies to --approximator nn --training periodic "
+                             "only (a guide is an orbit of the periodic loss)")
+        for flag, on in (("--amplitude-stages", self.train.amplitude_stages),
+                         ("--branch-rounds", self.train.branch_rounds),
+                         ("--monotone-rounds", self.train.monotone_rounds)):
+            if on:
+                raise ValueError(f"--guide-orbits and {flag} do not combine ({flag} plans "
+                                 "from the measured orbits alone)")
 
     def _defaults_that_apply(self) -> TrainConfig:
         """The training configuration with the aerofoil's default rest-free network and

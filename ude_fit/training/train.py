@@ -128,7 +128,8 @@ def refine_mechanistic(model: UDE, data: TrainingData, *, cfg: TrainConfig, prog
     estimate (or any start) refined so that the model has closed orbits through the
     measured ones with the measured stability. The damping and stiffness values the
     equation error bounds at zero stay positive here too (:func:`_mech_with`).
-    Returns (UDE without correction, info). ``data`` must carry the model's hidden states, if it has any (``augment``)."""
+    Returns (UDE without correction, info). ``data`` must carry the model's hidden
+    states, if it has any (``augment``)."""
     cfg = cfg.for_system(model.system)
     mech = model.mech
     leaves = _mech_leaves(mech)
@@ -180,15 +181,16 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
         raise ValueError(f"unknown training mode {training!r} (trajectory, periodic, equation)")
     cfg = cfg.for_system(model.system)
     # the starts differ only in their network's weights; scaling and structure are shared
+    measured = data.measurements()      # without the guide orbits, if any (.guides)
     parts = [eqx.partition(c, _trainable_spec(c))
-             for c in (new_correction(model, data, k, cfg) for k in keys)]
+             for c in (new_correction(model, measured, k, cfg) for k in keys)]
     static = parts[0][1]
     lanes = len(keys) if ensemble else None
     lead = (len(keys),) if ensemble else ()
     params = {"corr": _stack([p for p, _ in parts]) if ensemble else parts[0][0]}
     mech = model.mech
-    Z, R = residual_forces(UDE(mech), data)
-    reg = regularity_points(data) if cfg.needs_points() else None
+    Z, R = residual_forces(UDE(mech), measured)
+    reg = regularity_points(measured) if cfg.needs_points() else None
     params, eq_loss, failed = descend(
         equation_loss, params, (static, mech, jnp.asarray(Z), jnp.asarray(R), cfg.penalties,
                                 reg),
