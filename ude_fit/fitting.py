@@ -26,15 +26,15 @@ from .analysis.backbone import BackboneFit, backbone_of
 from .analysis.adequacy import data_scatter, error_bar, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
 from .analysis.metrics_type import ModelMetrics
-from .data.one_fold import fit_one_fold
 from .data.estimates import estimate_from_data
+from .data.one_fold import fit_one_fold
 from .data.orbit import DataError, OrbitDataset
 from .models.mechanistic import FLUTTER_NOMINAL
 from .models.parameter_file import MechanisticParameters
 from .models.ude import UDE
 from .training.gp import fit_gp
-from .training.guides import guide_orbits, with_guides
 from .training.control import ControlInput, control_input, with_control
+from .training.guides import guide_orbits, with_guides
 from .training.identify import (INPUT_GAIN, TrainingData, augment, identify, residual_forces,
                                 training_data)
 from .training.optimise import Diverged

@@ -11,9 +11,10 @@ so V' changes sign once, at s_f: exactly one Hopf point (s = 0, where V − V_H 
 the normal form), one fold at s_f, unstable orbits below it and stable ones above. It is the
 normal form's shape (β = 0, V a cubic in s) with one more freedom, an exponential tilt, which
 lets the stable branch grow nearly linearly in s while the unstable branch stays flat, as
-the wind-tunnel points do (:mod:`.backbone`'s form in s² cannot: 9.9 % on lee2020/model2,
-this one 4.4 %). More freedom (a tilt that is itself piecewise linear) fitted the 11
-lee2020 points closer but put the fold anywhere from 15 to 20 m/s.
+the wind-tunnel points do (:mod:`ude_fit.analysis.backbone`'s form in s² cannot: its points
+are 9.9 % off on lee2020/model2, this curve's 5.2 %). More freedom (a tilt that is itself
+piecewise linear) fitted the 11 lee2020 points closer but put the fold anywhere from 15 to
+20 m/s.
 
 Fitted by orthogonal distance in the diagram's plane (airspeed in units of the measured
 span, amplitude in units of the largest orbit): every point's foot on the curve is an
@@ -23,6 +24,7 @@ measured orbits (:mod:`ude_fit.training.guides`).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -112,9 +114,9 @@ def fit_one_fold(ds: OrbitDataset, top: float) -> OneFoldCurve | None:
             best = res
     hopf, fold_s, log_c, tilt, _ = unpack(best.x)
     curve = OneFoldCurve(float(hopf), float(fold_s), float(log_c), float(tilt), scale,
-                         float(top), 0.0)
-    return OneFoldCurve(curve.hopf, curve.fold_s, curve.log_c, curve.tilt, scale, float(top),
-                        _amplitude_rms(curve, V, s_pt, unstable))
+                         float(top), amplitude_rms=0.0)
+    return dataclasses.replace(curve,
+                               amplitude_rms=_amplitude_rms(curve, V, s_pt, unstable))
 
 
 def _amplitude_rms(curve: OneFoldCurve, V, s_pt, unstable) -> float:

@@ -25,6 +25,8 @@ def _backbone(bb: dict | None, unit: str) -> list[str]:
             f"{bb['hopf']:.3f} ± {bb['hopf_std']:.3f} {unit}, {fold}; branch amplitude error "
             f"RMS {pct(bb['branch_rms'])}, max {pct(bb['branch_max'])}, "
             f"{bb['missed']} missed."]
+
+
 def _guides(g: dict | None, unit: str) -> list[str]:
     """The guide orbits the UDE trained on (ude_fit.training.guides), if any."""
     if not g:
