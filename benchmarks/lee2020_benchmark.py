@@ -37,6 +37,14 @@ DEFAULT_DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "da
                             "model2")
 
 
+def _guide_rounds(record: dict) -> dict:
+    """A start's folds before its guide rounds and the rounds run, where it had any."""
+    g = record.get("guide_rounds")
+    return {} if g is None else {"folds_before_guide_rounds": g["folds_before"],
+                                 "guide_rounds_run": len(g["rounds"]),
+                                 "guide_round_kept": g["kept_round"]}
+
+
 def one_seed(data: str, seed: int, extra: list[str]) -> dict:
     with tempfile.TemporaryDirectory() as out:
         t0 = time.perf_counter()
@@ -52,6 +60,7 @@ def one_seed(data: str, seed: int, extra: list[str]) -> dict:
     starts = [{"start": r["start"], "adequate": r["adequate"],
                **({k: r["metrics"][k] for k in ("branch_rms", "missed", "fold_count")}
                   | {"hopf": (r["metrics"]["hopf"] or {}).get("model")}
+                  | _guide_rounds(r)
                   if r.get("metrics") else {"status": r["status"]})}
               for r in m["starts"]["records"]]
     return {"seed": seed, "exit": rc, "adequate": m["starts"]["adequate"],

@@ -41,6 +41,8 @@ FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rou
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 # the guide orbits (periodic training of the network, without the rounds above)
 GUIDE_FLAGS = ["--guide-orbits", "10", "--guide-weight", "0.5", "--seed", "4"]
+# the guide rounds (on by default; another count, and the first round's weight)
+ROUND_FLAGS = ["--guide-rounds", "3", "--guide-weight", "0.2", "--seed", "6"]
 # fit options the pipeline refuses (tests/test_ude_control_input.py checks the refusal)
 FIT_ONLY_FLAGS = ["--control-input", "--control-gain", "2.5",
                   "--add", "heave_unsteady_aero", "pitch_freeplay=0.01"]
@@ -51,7 +53,7 @@ def _fit_dests() -> set[str]:
     return {a.dest for a in sub.choices["fit"]._actions} - {"help", "out", "quiet"}
 
 
-@pytest.mark.parametrize("flags", [NN_FLAGS, FORM_FLAGS, GP_FLAGS, GUIDE_FLAGS])
+@pytest.mark.parametrize("flags", [NN_FLAGS, FORM_FLAGS, GP_FLAGS, GUIDE_FLAGS, ROUND_FLAGS])
 def test_pipeline_builds_the_options_fit_builds(flags):
     parser = build_parser()
     common = ["data.h5", "--system", "flutter", *flags, "--out", "o"]
@@ -67,7 +69,8 @@ def test_every_fit_flag_is_set_by_the_test_and_taken_by_the_pipeline():
     pipe = {a.dest for a in sub.choices["pipeline"]._actions}
     assert _fit_dests() <= pipe
     flags = {f.lstrip("-").removeprefix("no-").replace("-", "_")
-             for f in NN_FLAGS + FORM_FLAGS + GP_FLAGS + GUIDE_FLAGS + FIT_ONLY_FLAGS
+             for f in NN_FLAGS + FORM_FLAGS + GP_FLAGS + GUIDE_FLAGS + ROUND_FLAGS
+             + FIT_ONLY_FLAGS
              if f.startswith("--")}
     assert _fit_dests() - {"data", "system", "stability"} == flags
 

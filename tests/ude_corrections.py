@@ -27,7 +27,12 @@ class LargeSwingFeed(eqx.Module):
     k: jax.Array
     scale: float = eqx.field(static=True, default=200.0)
     h0: float = eqx.field(static=True, default=0.1)
+    # the swing factor's ceiling, if any: a bounded feed, as a saturating network's is (an
+    # orbit asked for far beyond h0 then grows within a period instead of blowing up)
+    cap: float | None = eqx.field(static=True, default=None)
 
     def __call__(self, z):
-        feed = jax.nn.relu((z[0] / self.h0) ** 2 - 1.0) ** 2 * z[2]
-        return jnp.stack([self.k * self.scale * feed, 0.0 * z[4]])
+        swing = jax.nn.relu((z[0] / self.h0) ** 2 - 1.0) ** 2
+        if self.cap is not None:
+            swing = jnp.minimum(swing, self.cap)
+        return jnp.stack([self.k * self.scale * swing * z[2], 0.0 * z[4]])

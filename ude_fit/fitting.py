@@ -29,6 +29,7 @@ from .analysis.metrics_type import ModelMetrics
 from .data.estimates import estimate_from_data
 from .data.one_fold import fit_one_fold
 from .data.orbit import DataError, OrbitDataset
+from .guide_rounds import GuideRepair, GuideRounds
 from .models.mechanistic import FLUTTER_NOMINAL
 from .models.parameter_file import MechanisticParameters
 from .models.ude import UDE
@@ -61,6 +62,7 @@ class StartRecord:
     adequate: bool = False
     model: UDE | None = None
     diagram: dict | None = None
+    guide_rounds: GuideRepair | None = None   # where its diagram broke the rule
 
     @property
     def ok(self) -> bool:
@@ -85,6 +87,8 @@ class StartRecord:
                    metrics={**{k: v for k, v in self.metrics.to_json().items()
                                if k in _RECORD_METRICS},
                             "fold_count": self.metrics.fold_count})
+        if self.guide_rounds is not None:
+            out["guide_rounds"] = self.guide_rounds.to_json()
         return out
 
 
@@ -375,6 +379,9 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
 
     keys = jax.random.split(jax.random.PRNGKey(opts.seed), opts.starts)
     trained, train_seconds = _train_starts(mech_model, data, opts, keys, say, verbose)
+    fold_needed = needs_fold(ds)
+    evaluate = lambda model: _evaluate(model, ds, ranges, scales, ref, ref_source)
+    repairs = GuideRounds(ds, data, mech_m, fold_needed, opts, evaluate, say, verbose)
     starts = []
     for k, result in enumerate(trained):
         t0 = time.perf_counter()
@@ -385,7 +392,10 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
             rec.status, rec.reason = "dropped", str(result)
         else:
             model, info = result
-            diag, m = _evaluate(model, ds, ranges, scales, ref, ref_source)
+            diag, m = evaluate(model)
+            if repairs.needed(m):
+                say(event="stage", stage=f"guide rounds, start {k + 1}")
+                model, diag, m, rec.guide_rounds = repairs.run(k + 1, model, diag, m, info)
             rec.loss, rec.info, rec.metrics = info.get("final_loss"), info, m
             rec.model, rec.diagram = model, diag
         rec.seconds = train_seconds[k] + time.perf_counter() - t0
@@ -393,7 +403,6 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
         starts.append(rec)
 
     scatter = data_scatter(ds)
-    fold_needed = needs_fold(ds)
     backbone = backbone_metrics(ds)
     ok = [s for s in starts if s.completed]
     for s, a in zip(starts, judge_starts([s.metrics for s in starts], mech_m, opts, scatter,

@@ -156,8 +156,16 @@ def add_fit_arguments(p) -> None:
                    "the largest orbit, their heave only, each at --guide-weight "
                    "(docs/fitting.md; default 0: none)")
     p.add_argument("--guide-weight", type=positive_float("--guide-weight"), default=0.3,
-                   metavar="W", help="--guide-orbits: each guide's weight against a measured "
-                   "orbit's 1 (default 0.3)")
+                   metavar="W", help="--guide-orbits, --guide-rounds: each guide's weight "
+                   "against a measured orbit's 1 (the first round's; default 0.3)")
+    p.add_argument("--guide-rounds", type=positive_int("--guide-rounds", 0), default=None,
+                   metavar="R",
+                   help="aerofoil, the network with periodic training: a start whose traced "
+                   "diagram has more folds than the adequacy rule allows is trained on with "
+                   "orbits of a one-fold curve fitted to the points, where no measured orbit "
+                   "is near, over the whole amplitude window, for up to R rounds, each at "
+                   "three times the last round's weight; it keeps the model with the fewest "
+                   "folds (docs/fitting.md; default 2 where it applies, 0 turns it off)")
     p.add_argument("--control-input", action="store_true",
                    help="aerofoil: the recorded holding control as a known force on heave, "
                    "so a point held with some control is fitted as an orbit of the "
@@ -203,6 +211,7 @@ def fit_options(args):
         mechanistic=args.mechanistic,
         control_input=args.control_input, control_gain=args.control_gain,
         guide_orbits=args.guide_orbits, guide_weight=args.guide_weight,
+        guide_rounds=args.guide_rounds,
         reference_hopf=args.reference_hopf, reference_fold=args.reference_fold,
         train=TrainConfig(width=args.width, depth=args.depth, param_scale=args.param_scale,
                           param_dependence=args.param_dependence,

@@ -40,6 +40,29 @@ def _guides(g: dict | None, unit: str) -> list[str]:
             "is against the measured points."]
 
 
+def _guide_rounds(records: list[dict]) -> list[str]:
+    """What the guide rounds (ude_fit.guide_rounds) did to each start they ran on."""
+    out = []
+    for r in records:
+        g = r.get("guide_rounds")
+        if g is None:
+            continue
+        done = "; ".join(f"round {i} (weight {x['weight']:g}): {x['folds']} folds, "
+                         f"{x['missed']} missed, {pct(x['branch_rms'])}"
+                         for i, x in enumerate(g["rounds"], 1)) or "no round ran"
+        kept = ("the trained model (no round had fewer folds)" if g["kept_round"] == 0
+                else f"round {g['kept_round']}'s model")
+        stop = f" Stopped: {g['stop']}." if g.get("stop") else ""
+        out.append(f"- start {r['start']}: {g['folds_before']} folds after training, "
+                   f"{g['folds_allowed']} allowed; {done}. Kept {kept}; the table gives "
+                   f"its figures.{stop}")
+    if not out:
+        return []
+    return ["", "Guide rounds (`--guide-rounds`): the starts whose diagram had more folds "
+            "than allowed were trained on with orbits of the one-fold curve fitted to the "
+            "points (docs/fitting.md):", "", *out]
+
+
 def _unknown_stability(d: dict) -> list[str]:
     unknown = d.get("unknown_stability") or []
     if not unknown:
@@ -161,6 +184,7 @@ def render(metrics: dict, figures: dict) -> str:
                  f"{'yes' if r.get('adequate') else 'no'} |")
     for d_ in st["dropped"]:
         L.append(f"\nStart {d_['start']} dropped: {d_['reason']}.")
+    L += _guide_rounds(st["records"])
     ident = mech.get("identification", {})
     sources, known = ident.get("sources", {}), ident.get("known", {})
     L += ["", "## Mechanistic parameters", "",

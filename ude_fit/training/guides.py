@@ -33,11 +33,12 @@ from .identify import TrainingData, augment, training_data
 GUIDE_TOP = 1.15
 
 
-def guide_orbits(ds: OrbitDataset, curve: OneFoldCurve, n: int) -> OrbitDataset:
+def guide_orbits(ds: OrbitDataset, curve: OneFoldCurve, n: int,
+                 top: float = GUIDE_TOP) -> OrbitDataset:
     """``n`` orbits of ``curve``, evenly spaced in amplitude from the smallest labelled
-    orbit's to :data:`GUIDE_TOP` times the largest."""
+    orbit's to ``top`` times the largest."""
     labelled = [o for o in ds if o.stable is not None]
-    lo, hi = min(o.amplitude for o in labelled) / curve.amp_scale, GUIDE_TOP
+    lo, hi = min(o.amplitude for o in labelled) / curve.amp_scale, top
     grid = np.linspace(lo, hi, n)
     step = (hi - lo) / max(n - 1, 1)
     out = []

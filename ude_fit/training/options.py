@@ -22,6 +22,10 @@ from .penalties import Penalty
 APPROXIMATORS = ("nn", "gp")
 TRAININGS = ("trajectory", "periodic")
 MECHANISTIC = ("equation", "periodic")
+# guide rounds for a start that breaks the fold rule (ude_fit.guide_rounds), by default:
+# the first at the guide weight, the second at three times it (on lee2020 the second round
+# took one start of six from three folds to one; docs/fitting.md)
+DEFAULT_GUIDE_ROUNDS = 2
 
 
 @dataclass(frozen=True)
@@ -205,6 +209,10 @@ class FitOptions:
     # measured ones (training.guides; experimental, aerofoil), each at guide_weight
     guide_orbits: int = 0
     guide_weight: float = 0.3
+    # rounds of training on with the guides for a start whose traced diagram breaks the
+    # adequacy rule's fold count (ude_fit.guide_rounds; aerofoil), the first at
+    # guide_weight; None: DEFAULT_GUIDE_ROUNDS where they apply, else 0
+    guide_rounds: int | None = None
 
     def __post_init__(self):
         if self.system not in SYSTEMS:
@@ -332,27 +340,47 @@ class FitOptions:
         object.__setattr__(self, "train", self._defaults_that_apply())
 
     def _check_guides(self):
-        n, w = self.guide_orbits, self.guide_weight
+        n, w, r = self.guide_orbits, self.guide_weight, self.guide_rounds
         if isinstance(n, bool) or not isinstance(n, int) or n < 0 or n == 1:
             raise ValueError(f"--guide-orbits must be 0 (none) or an integer at least 2, "
                              f"not {n!r}")
         if isinstance(w, bool) or not isinstance(w, (int, float)) or not (
                 math.isfinite(w) and w > 0):
             raise ValueError(f"--guide-weight must be a number above 0, not {w!r}")
-        if not n:
+        if r is None:
+            r = DEFAULT_GUIDE_ROUNDS if self._guide_rounds_apply() else 0
+            object.__setattr__(self, "guide_rounds", r)
+        if isinstance(r, bool) or not isinstance(r, int) or r < 0:
+            raise ValueError(f"--guide-rounds must be an integer at least 0, not {r!r}")
+        if n and r:
+            raise ValueError("--guide-orbits and --guide-rounds do not combine (guides in "
+                             "every start's training, or in rounds for the starts that "
+                             "break the picture)")
+        flag = "--guide-orbits" if n else "--guide-rounds" if r else None
+        if flag is None:
             return
         if not system_kind(self.system).autonomous:
-            raise ValueError("--guide-orbits applies to --system flutter only (the curve is "
+            raise ValueError(f"{flag} applies to --system flutter only (the curve is "
                              "a self-excited branch's, from a Hopf point through one fold)")
         if self.approximator != "nn" or self.training != "periodic":
-            raise ValueError("--guide-orbits applies to --approximator nn --training periodic "
+            raise ValueError(f"{flag} applies to --approximator nn --training periodic "
                              "only (a guide is an orbit of the periodic loss)")
-        for flag, on in (("--amplitude-stages", self.train.amplitude_stages),
-                         ("--branch-rounds", self.train.branch_rounds),
-                         ("--monotone-rounds", self.train.monotone_rounds)):
+        for other, on in (("--amplitude-stages", self.train.amplitude_stages),
+                          ("--branch-rounds", self.train.branch_rounds),
+                          ("--monotone-rounds", self.train.monotone_rounds)):
             if on:
-                raise ValueError(f"--guide-orbits and {flag} do not combine ({flag} plans "
+                raise ValueError(f"{flag} and {other} do not combine ({other} plans "
                                  "from the measured orbits alone)")
+
+    def _guide_rounds_apply(self) -> bool:
+        """Whether the default guide rounds apply: the aerofoil's network with periodic
+        training, without guides in every start or the experimental plans from the measured
+        orbits alone."""
+        t = self.train
+        return (system_kind(self.system).autonomous and self.approximator == "nn"
+                and self.training == "periodic" and t.form == "network"
+                and not self.guide_orbits and not t.amplitude_stages
+                and not t.branch_rounds and not t.monotone_rounds)
 
     def _defaults_that_apply(self) -> TrainConfig:
         """The training configuration with the aerofoil's default rest-free network and

@@ -20,6 +20,9 @@ The stages, in the order :func:`train_ude` runs them (losses in :mod:`.losses`):
   between orbits of one stability and rising above the largest stable one
   (:func:`.rounds.keep_monotone`).
 
+:func:`train_on` trains a trained UDE on, from its weights, on data that may hold orbits
+its first training did not (the guide rounds, :mod:`ude_fit.guide_rounds`).
+
 Optimisation: Adam, then L-BFGS (optax), all float64. :func:`train_ensemble` trains many
 random starts at once, vmapped (:mod:`.optimise`). :func:`refine_mechanistic` is the
 mechanistic model's output-error identification on the same periodic objective.
@@ -41,10 +44,11 @@ from ..models.ude import UDE
 from .amplitude_start import start_amplitude
 from .branch import amplitude_stages
 from .identify import TrainingData, residual_forces
-from .losses import equation_loss, periodic_loss, periodic_objective, trajectory_loss
+from .losses import (constrained_periodic_loss, equation_loss, periodic_loss,
+                     periodic_objective, trajectory_loss)
 from .optimise import Diverged, descend, lane_of, minimize
 from .options import TrainConfig
-from .penalties import regularity_points
+from .penalties import constraints_for, regularity_points
 from .rounds import enforce_constraints, follow_branch, keep_monotone
 
 
@@ -172,6 +176,37 @@ def train_ensemble(model: UDE, data: TrainingData, *, keys, cfg: TrainConfig,
     if cfg.constraint_rounds is None:
         cfg = dataclasses.replace(cfg, constraint_rounds=0)
     return _train(model, data, list(keys), cfg, training, progress, ensemble=True)
+
+
+def train_on(model: UDE, data: TrainingData, *, cfg: TrainConfig,
+             constraint_weights: dict | None = None, progress=None,
+             stage: str = "periodic, again") -> tuple[UDE, float]:
+    """``model``'s correction trained on with the periodic loss of ``data``, from its
+    weights: every orbit's initial state and period free again (as offsets from the
+    measured ones), the constraint conditions at ``constraint_weights`` (by option name,
+    as the rounds left them; a condition not named weighs 0). Returns (UDE, loss); raises
+    :class:`~.optimise.Diverged` if the loss goes non-finite."""
+    require_float64("train_on")
+    cfg = cfg.for_system(model.system)
+    corr, static = eqx.partition(model.correction, _trainable_spec(model.correction))
+    params = {"corr": corr, "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
+    if model.mech.autonomous:
+        params["dT"] = jnp.zeros(data.period.shape)
+    # only the conditions the rounds weighted (one at weight 0 would cost its evaluation)
+    weighted = {k: w for k, w in (constraint_weights or {}).items() if w}
+    constraints = tuple(c for c in constraints_for(cfg) if c.option in weighted)
+    weights = jnp.asarray([weighted[c.option] for c in constraints])
+    reg = (regularity_points(data.measurements())
+           if constraints or cfg.needs_points() else None)
+    params, loss, failed = descend(
+        constrained_periodic_loss, params,
+        (static, model.mech, data, cfg, reg, constraints, weights), lanes=None,
+        adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps, lr=cfg.learning_rate,
+        progress=progress, stage=stage)
+    if failed:
+        raise Diverged(failed[0])
+    return (resolve(UDE(model.mech, eqx.combine(params["corr"], static))),
+            float(np.asarray(loss).reshape(-1)[0]))
 
 
 def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, training: str,

@@ -1,0 +1,161 @@
+"""Guide rounds (``--guide-rounds R``; 2 by default for the aerofoil's network): a start
+whose traced diagram has more folds than the adequacy rule allows is trained on with the
+one-fold curve's guide orbits (:mod:`ude_fit.training.guides`), and traced again.
+
+Guides trained on from the start (``--guide-orbits``) pull every fit towards a curve a
+few per cent from the points, and cost the simulated campaigns' fits most of their
+accuracy (docs/fitting.md). A round is run only where the trained start breaks the
+picture the rule asks for, as the constraint rounds run only where a condition is broken:
+a start whose diagram already has it is left exactly as it was. The guides of a round
+reach over the whole amplitude window the diagram is traced and judged in (a branch that
+turns back above the guides' top would still count), where no measured orbit is near
+(:func:`round_guides`). Each round trains from the last round's weights at the guides'
+weight, three times the last round's, until the start has a model within the rule or
+``R`` rounds have run. The start keeps the model with the fewest folds among those that
+miss no more measured points than the trained one (the earliest of equals: the least
+guided).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .data.one_fold import OneFoldCurve, fit_one_fold
+from .data.orbit import OrbitDataset
+from .models.ude import UDE
+from .training.guides import guide_orbits, with_guides
+from .training.identify import TrainingData
+from .training.optimise import Diverged
+from .training.options import FitOptions
+from .training.penalties import CONSTRAINTS
+from .training.train import train_on
+
+# guide orbits per round, evenly spaced over the window: about one per tenth of it
+ROUND_GUIDES = 12
+# each round's guide weight over the last's (the constraint rounds' escalation is tenfold;
+# a guide asks for a whole orbit, so a gentler step)
+WEIGHT_STEP = 3.0
+
+
+@dataclass(frozen=True)
+class GuideRound:
+    """One round: the guides' weight and what the traced diagram showed after it."""
+    weight: float
+    folds: int
+    missed: int
+    branch_rms: float | None
+    loss: float
+
+    def to_json(self) -> dict:
+        return {"weight": self.weight, "folds": self.folds, "missed": self.missed,
+                "branch_rms": self.branch_rms, "loss": self.loss}
+
+
+@dataclass(frozen=True)
+class GuideRepair:
+    """A start's guide rounds: its folds before them, every round, the model kept (0: the
+    trained one, k: round k's) and why the rounds ended early, if they did."""
+    folds_before: int
+    allowed: int
+    rounds: tuple[GuideRound, ...]
+    kept: int
+    stop: str | None = None
+
+    def to_json(self) -> dict:
+        return {"folds_before": self.folds_before, "folds_allowed": self.allowed,
+                "rounds": [r.to_json() for r in self.rounds], "kept_round": self.kept,
+                "stop": self.stop}
+
+
+class GuideRounds:
+    """The guide rounds of a fit (``opts.guide_rounds``): which starts break the adequacy
+    rule's picture (more folds than the mechanistic model's count plus one per family, or
+    none where the data needs a fold), and the rounds for them; the one-fold curve is
+    fitted once, at the first start that needs it. ``evaluate(model)`` traces a model and
+    judges it against the data; ``say`` is the fit's progress callback."""
+
+    def __init__(self, ds, data, mech_m, fold_needed, opts, evaluate, say, verbose):
+        self.ds, self.data, self.opts, self.evaluate = ds, data, opts, evaluate
+        self.allowed = mech_m.fold_count + mech_m.families
+        self.fold_needed = fold_needed
+        self.say, self.verbose = say, verbose
+        self._guides = None
+
+    def needed(self, m) -> bool:
+        return bool(self.opts.guide_rounds) and (
+            m.fold_count > self.allowed or (self.fold_needed and m.fold_count == 0))
+
+    def run(self, start: int, model, diag, m, info):
+        if self._guides is None:
+            curve = fit_one_fold(self.ds, self.ds.kind.amplitude_window)
+            if curve is None:
+                return model, diag, m, GuideRepair(
+                    m.fold_count, self.allowed, (), 0,
+                    "no one-fold curve: the data has no stable and unstable points")
+            self._guides = round_guides(self.ds, curve)
+        return repair_start(model, m, diag, data=self.data, guides=self._guides,
+                            opts=self.opts, allowed=self.allowed,
+                            constraint_weights=constraint_weights(info),
+                            evaluate=self.evaluate,
+                            progress=(lambda **kw: self.say(event="train", start=start, **kw))
+                            if self.verbose else None)
+
+
+def round_guides(ds: OrbitDataset, curve: OneFoldCurve) -> OrbitDataset:
+    """The guide orbits every round trains on: :data:`ROUND_GUIDES` evenly spaced over the
+    diagram's whole amplitude window, less those within half a step of a measured orbit.
+    Where the data speaks a guide would only contradict it (the curve is a few per cent
+    from the points, and its Hopf point is an extrapolation below the smallest orbit);
+    the guides are for where it is silent."""
+    grid = guide_orbits(ds, curve, ROUND_GUIDES, top=ds.kind.amplitude_window)
+    half_step = 0.5 * (grid.orbits[1].amplitude - grid.orbits[0].amplitude)
+    measured = [o.amplitude for o in ds if o.stable is not None]
+    kept = tuple(g for g in grid
+                 if min(abs(g.amplitude - a) for a in measured) > half_step)
+    return OrbitDataset(grid.system, kept, tuple(g.source for g in kept))
+
+
+def repair_start(model: UDE, metrics, diagram, *, data: TrainingData, guides: OrbitDataset,
+                 opts: FitOptions, allowed: int, constraint_weights: dict, evaluate,
+                 progress=None):
+    """Guide rounds for one trained start whose diagram has more than ``allowed`` folds.
+
+    ``evaluate(model)`` traces a model and judges it against the data: (diagram, metrics).
+    ``constraint_weights``: the constraint rounds' final weights, by option name (the
+    conditions stay at them). Returns (model, diagram, metrics, :class:`GuideRepair`) of
+    the model kept."""
+    before = metrics.fold_count
+    best = (metrics, 0, model, diagram)
+    rounds, stop = [], None
+    weight = opts.guide_weight
+    current = model
+    for k in range(1, opts.guide_rounds + 1):
+        guided = with_guides(data, guides, model.mech, weight)
+        try:
+            current, loss = train_on(current, guided, cfg=opts.train,
+                                     constraint_weights=constraint_weights,
+                                     progress=progress, stage=f"guides, round {k}")
+        except Diverged as err:
+            stop = f"round {k} undone ({err})"
+            break
+        diag, m = evaluate(current)
+        rounds.append(GuideRound(weight, m.fold_count, m.summary.missed,
+                                 m.summary.branch_rms, loss))
+        if _better(m, best[0]):
+            best = (m, k, current, diag)
+        if best[0].fold_count <= allowed:
+            break
+        weight *= WEIGHT_STEP
+    metrics, kept, model, diagram = best
+    return model, diagram, metrics, GuideRepair(before, allowed, tuple(rounds), kept, stop)
+
+
+def _better(m, than) -> bool:
+    """A round's model replaces the start's best so far where it has fewer folds and misses
+    no more points: a fold taken away at the price of a measured orbit is no repair."""
+    return m.fold_count < than.fold_count and m.summary.missed <= than.summary.missed
+
+
+def constraint_weights(info: dict) -> dict:
+    """The constraint rounds' final weights from a start's training info, by option name."""
+    return {c.option: info.get(f"{c.option}_weight", 0.0) for c in CONSTRAINTS}
