@@ -4,11 +4,12 @@ mechanistic and UDE models fitted with the default command, as a user would run 
 
 The default aerofoil network is rest-free (its Hopf point is the mechanistic model's and the
 explicit linear terms', not the network's extrapolation to rest) and held by constraint
-rounds to the energy-rising and rest-stability conditions, with no weight set by hand
-(docs/fitting.md). On these few, scattered points that puts the Hopf point where the
-unstable orbits point and every point on the model's branches with its stability, but the
-branch from the Hopf point still folds more than once in most starts: the issue's 80 %
-adequate starts is not met (the strict xfail below).
+rounds to the energy-rising and rest-stability conditions, with no weight set by hand; a
+start whose diagram still folds more than once gets guide rounds (docs/fitting.md). On
+these few, scattered points that puts the Hopf point where the unstable orbits point and
+every point on the model's branches with its stability; the guide rounds take the extra
+folds away in about half the starts that have them (3 of 5 adequate on seeds 0 and 1), so
+the issue's 80 % adequate starts is still not met (the strict xfail below).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import jax  # noqa: E402  (after the imports above, before any array)
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 
-# the fit takes about 4 min alone on 2 cores, 8 beside the other CI worker
+# the fit takes about 6 min alone on 2 cores, 10 beside the other CI worker
 pytestmark = [pytest.mark.timeout(2400), pytest.mark.minutes(8)]
 
 
@@ -92,7 +93,29 @@ def test_the_hopf_point_is_where_the_unstable_orbits_point(lee_fit, capsys):
         assert r["info"]["constraints_met"] is True, r["info"]
 
 
-@pytest.mark.xfail(strict=True, reason="measured 0 of 2 on seed 0 (5 and 2 folds); "
+def test_guide_rounds_run_only_where_a_start_breaks_the_fold_rule(lee_fit):
+    _, m, _ = lee_fit
+    repaired = 0
+    for r in m["starts"]["records"]:
+        g = r.get("guide_rounds")
+        if g is None:                       # the trained start had the data's picture
+            assert r["metrics"]["fold_count"] == 1, r
+            continue
+        # the mechanistic model misses every point (no fold of its own): one is allowed
+        assert g["folds_allowed"] == 1 and g["folds_before"] > 1 and g["rounds"]
+        assert [x["weight"] for x in g["rounds"]] == pytest.approx(
+            [0.3 * 3 ** i for i in range(len(g["rounds"]))])
+        if g["kept_round"]:
+            kept = g["rounds"][g["kept_round"] - 1]
+            assert r["metrics"]["fold_count"] == kept["folds"] < g["folds_before"]
+            assert r["metrics"]["missed"] == kept["missed"]
+            repaired += r["metrics"]["fold_count"] == 1 and kept["missed"] == 0
+    # measured on seed 0: the first start's five folds taken to one in its first round
+    assert repaired >= 1, m["starts"]["records"]
+
+
+@pytest.mark.xfail(strict=True, reason="measured 1 of 2 on seed 0 (the first start's 5 "
+                   "folds taken to 1 by a guide round, the second's 2 left by both rounds); "
                    "issue 17 asks for 80 % with the default command")
 def test_at_least_80_percent_of_starts_adequate(lee_fit):
     _, m, _ = lee_fit
