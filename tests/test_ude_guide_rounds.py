@@ -4,6 +4,7 @@ checked on a model with a second fold planted above the data, where the measured
 cannot see it, and on the options and the report."""
 
 import dataclasses
+from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -16,8 +17,9 @@ from ude_fit import UDE, identify, load, training_data
 from ude_fit.analysis.diagram import _evaluate, diagram_ranges
 from ude_fit.cli import main
 from ude_fit.data.one_fold import fit_one_fold
-from ude_fit.guide_rounds import (ROUND_GUIDES, GuideRepair, GuideRound, GuideRounds,
-                                  constraint_weights, repair_start, round_guides)
+from ude_fit.guide_rounds import (ROUND_GUIDES, FoldRule, GuideRepair, GuideRound,
+                                  GuideRounds, _better, constraint_weights, repair_start,
+                                  round_guides)
 from ude_fit.report.markdown import _guide_rounds
 from ude_fit.training.guides import GUIDE_TOP
 from ude_fit.training.options import DEFAULT_GUIDE_ROUNDS, FitOptions, TrainConfig
@@ -69,15 +71,16 @@ def test_a_round_takes_away_the_fold_planted_above_the_data(campaign):
     diag, m = evaluate(planted)
     _, m_mech = evaluate(UDE(mech))
     assert m.fold_count == m_mech.fold_count + 1
-    allowed = m_mech.fold_count          # the rule's count where the mechanistic model has none
+    # the rule's count where the mechanistic model has none of its own
+    rule = FoldRule(allowed=m_mech.fold_count, required=True)
     opts = FitOptions("flutter", guide_rounds=2,
                       train=TrainConfig(adam_steps=150, lbfgs_steps=60))
     guides = round_guides(ds, fit_one_fold(ds, ds.kind.amplitude_window))
     model, _, after, repair = repair_start(planted, m, diag, data=data, guides=guides,
-                                           opts=opts, allowed=allowed,
+                                           opts=opts, rule=rule,
                                            constraint_weights={}, evaluate=evaluate)
     assert isinstance(repair, GuideRepair) and repair.folds_before == m.fold_count
-    assert repair.kept >= 1 and after.fold_count <= allowed, repair
+    assert repair.kept >= 1 and after.fold_count == m_mech.fold_count, repair
     assert after.summary.missed == 0
     assert float(model.correction.k) < 0.5, float(model.correction.k)
     assert repair.rounds[repair.kept - 1].folds == after.fold_count
@@ -97,9 +100,28 @@ def test_only_a_start_that_breaks_the_rule_is_trained_on(campaign):
     assert not repairs.needed(m)
     assert repairs.needed(dataclasses.replace(m, folds=(15.0, 20.0, 22.0)))
     assert repairs.needed(dataclasses.replace(m, folds=()))     # the data needs a fold
+    assert repairs.rule == FoldRule(allowed=2, required=True)
     off = GuideRounds(ds, data, m, True, FitOptions("flutter", guide_rounds=0), evaluate,
                    lambda **kw: None, False)
     assert not off.needed(dataclasses.replace(m, folds=(15.0, 20.0, 22.0)))
+
+
+def test_the_fold_rule_measures_how_far_a_diagram_is_from_it(campaign):
+    ds, data, mech = campaign
+    _, m = _evaluate(UDE(mech), ds, diagram_ranges(ds), np.asarray(data.y_scale), TRUTH,
+                     "truth")
+    with_folds = lambda *f: dataclasses.replace(m, folds=f)
+    rule = FoldRule(allowed=1, required=True)
+    assert [rule.excess(with_folds(*[16.0] * n)) for n in range(4)] == [1, 0, 1, 2]
+    assert FoldRule(allowed=2, required=False).excess(with_folds()) == 0
+    # a round is better only nearer the rule and with no more points missed
+    assert _better(with_folds(16.0), with_folds(16.0, 20.0, 21.0), rule)
+    assert not _better(with_folds(16.0, 20.0), with_folds(16.0, 20.0), rule)
+    # (the two figures the comparison reads, as a diagram that misses a point has them)
+    record = lambda folds, missed: SimpleNamespace(fold_count=folds,
+                                                   summary=SimpleNamespace(missed=missed))
+    assert not _better(record(1, 1), record(3, 0), rule)
+    assert _better(record(1, 1), record(3, 1), rule)
 
 
 def test_the_constraints_stay_at_their_rounds_weights():
@@ -142,7 +164,7 @@ def test_the_command_line_names_a_bad_round_count(tmp_path, capsys):
 
 def test_the_report_says_what_the_rounds_did():
     rounds = (GuideRound(0.3, 2, 0, 0.031, 0.01), GuideRound(0.9, 1, 0, 0.034, 0.02))
-    rec = {"start": 2, "guide_rounds": GuideRepair(3, 1, rounds, 2).to_json()}
+    rec = {"start": 2, "guide_rounds": GuideRepair(3, FoldRule(1, True), rounds, 2).to_json()}
     text = "\n".join(_guide_rounds([{"start": 1}, rec]))
     assert "start 2: 3 folds after training, 1 allowed" in text
     assert "round 1 (weight 0.3): 2 folds" in text and "round 2 (weight 0.9): 1 folds" in text

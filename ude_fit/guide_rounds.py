@@ -1,6 +1,7 @@
 """Guide rounds (``--guide-rounds R``; 2 by default for the aerofoil's network): a start
-whose traced diagram has more folds than the adequacy rule allows is trained on with the
-one-fold curve's guide orbits (:mod:`ude_fit.training.guides`), and traced again.
+whose traced diagram breaks the adequacy check's fold rule (more folds than it allows, or
+none where the data needs one) is trained on with the one-fold curve's guide orbits
+(:mod:`ude_fit.training.guides`), and traced again.
 
 Guides trained on from the start (``--guide-orbits``) pull every fit towards a curve a
 few per cent from the points, and cost the simulated campaigns' fits most of their
@@ -11,9 +12,8 @@ reach over the whole amplitude window the diagram is traced and judged in (a bra
 turns back above the guides' top would still count), where no measured orbit is near
 (:func:`round_guides`). Each round trains from the last round's weights at the guides'
 weight, three times the last round's, until the start has a model within the rule or
-``R`` rounds have run. The start keeps the model with the fewest folds among those that
-miss no more measured points than the trained one (the earliest of equals: the least
-guided).
+``R`` rounds have run. The start keeps the model nearest the rule among those that miss
+no more measured points than the trained one (the earliest of equals: the least guided).
 """
 
 from __future__ import annotations
@@ -52,17 +52,32 @@ class GuideRound:
 
 
 @dataclass(frozen=True)
-class GuideRepair:
-    """A start's guide rounds: its folds before them, every round, the model kept (0: the
-    trained one, k: round k's) and why the rounds ended early, if they did."""
-    folds_before: int
+class FoldRule:
+    """The adequacy check's fold count (:func:`ude_fit.analysis.adequacy._credible`): at
+    most ``allowed`` folds, and at least one where ``required`` (data with stable and
+    unstable orbits)."""
     allowed: int
+    required: bool
+
+    def excess(self, m) -> int:
+        """How far ``m``'s diagram is from the rule: its folds beyond those allowed, or 1
+        for none where one is required."""
+        return max(m.fold_count - self.allowed, 0) + int(self.required and m.fold_count == 0)
+
+
+@dataclass(frozen=True)
+class GuideRepair:
+    """A start's guide rounds: its folds before them, the rule, every round, the model kept
+    (0: the trained one, k: round k's) and why the rounds ended early, if they did."""
+    folds_before: int
+    rule: FoldRule
     rounds: tuple[GuideRound, ...]
     kept: int
     stop: str | None = None
 
     def to_json(self) -> dict:
-        return {"folds_before": self.folds_before, "folds_allowed": self.allowed,
+        return {"folds_before": self.folds_before, "folds_allowed": self.rule.allowed,
+                "fold_required": self.rule.required,
                 "rounds": [r.to_json() for r in self.rounds], "kept_round": self.kept,
                 "stop": self.stop}
 
@@ -76,25 +91,23 @@ class GuideRounds:
 
     def __init__(self, ds, data, mech_m, fold_needed, opts, evaluate, say, verbose):
         self.ds, self.data, self.opts, self.evaluate = ds, data, opts, evaluate
-        self.allowed = mech_m.fold_count + mech_m.families
-        self.fold_needed = fold_needed
+        self.rule = FoldRule(mech_m.fold_count + mech_m.families, bool(fold_needed))
         self.say, self.verbose = say, verbose
         self._guides = None
 
     def needed(self, m) -> bool:
-        return bool(self.opts.guide_rounds) and (
-            m.fold_count > self.allowed or (self.fold_needed and m.fold_count == 0))
+        return bool(self.opts.guide_rounds) and self.rule.excess(m) > 0
 
     def run(self, start: int, model, diag, m, info):
         if self._guides is None:
             curve = fit_one_fold(self.ds, self.ds.kind.amplitude_window)
             if curve is None:
                 return model, diag, m, GuideRepair(
-                    m.fold_count, self.allowed, (), 0,
+                    m.fold_count, self.rule, (), 0,
                     "no one-fold curve: the data has no stable and unstable points")
             self._guides = round_guides(self.ds, curve)
         return repair_start(model, m, diag, data=self.data, guides=self._guides,
-                            opts=self.opts, allowed=self.allowed,
+                            opts=self.opts, rule=self.rule,
                             constraint_weights=constraint_weights(info),
                             evaluate=self.evaluate,
                             progress=(lambda **kw: self.say(event="train", start=start, **kw))
@@ -116,9 +129,9 @@ def round_guides(ds: OrbitDataset, curve: OneFoldCurve) -> OrbitDataset:
 
 
 def repair_start(model: UDE, metrics, diagram, *, data: TrainingData, guides: OrbitDataset,
-                 opts: FitOptions, allowed: int, constraint_weights: dict, evaluate,
+                 opts: FitOptions, rule: FoldRule, constraint_weights: dict, evaluate,
                  progress=None):
-    """Guide rounds for one trained start whose diagram has more than ``allowed`` folds.
+    """Guide rounds for one trained start whose diagram breaks the fold ``rule``.
 
     ``evaluate(model)`` traces a model and judges it against the data: (diagram, metrics).
     ``constraint_weights``: the constraint rounds' final weights, by option name (the
@@ -141,19 +154,21 @@ def repair_start(model: UDE, metrics, diagram, *, data: TrainingData, guides: Or
         diag, m = evaluate(current)
         rounds.append(GuideRound(weight, m.fold_count, m.summary.missed,
                                  m.summary.branch_rms, loss))
-        if _better(m, best[0]):
+        if _better(m, best[0], rule):
             best = (m, k, current, diag)
-        if best[0].fold_count <= allowed:
+        if rule.excess(best[0]) == 0:
             break
         weight *= WEIGHT_STEP
     metrics, kept, model, diagram = best
-    return model, diagram, metrics, GuideRepair(before, allowed, tuple(rounds), kept, stop)
+    return model, diagram, metrics, GuideRepair(before, rule, tuple(rounds), kept, stop)
 
 
-def _better(m, than) -> bool:
-    """A round's model replaces the start's best so far where it has fewer folds and misses
-    no more points: a fold taken away at the price of a measured orbit is no repair."""
-    return m.fold_count < than.fold_count and m.summary.missed <= than.summary.missed
+def _better(m, than, rule: FoldRule) -> bool:
+    """A round's model replaces the start's best so far where it is nearer the fold rule and
+    misses no more points: a fold taken away at the price of a measured orbit is no
+    repair."""
+    return (rule.excess(m) < rule.excess(than)
+            and m.summary.missed <= than.summary.missed)
 
 
 def constraint_weights(info: dict) -> dict:

@@ -50,7 +50,8 @@ def _guide_rounds(records: list[dict]) -> list[str]:
         done = "; ".join(f"round {i} (weight {x['weight']:g}): {x['folds']} folds, "
                          f"{x['missed']} missed, {pct(x['branch_rms'])}"
                          for i, x in enumerate(g["rounds"], 1)) or "no round ran"
-        kept = ("the trained model (no round had fewer folds)" if g["kept_round"] == 0
+        kept = ("the trained model (no round came nearer the rule without missing a point)"
+                if g["kept_round"] == 0
                 else f"round {g['kept_round']}'s model")
         stop = f" Stopped: {g['stop']}." if g.get("stop") else ""
         out.append(f"- start {r['start']}: {g['folds_before']} folds after training, "
