@@ -72,7 +72,7 @@ def test_a_round_takes_away_the_fold_planted_above_the_data(campaign):
     _, m_mech = evaluate(UDE(mech))
     assert m.fold_count == m_mech.fold_count + 1
     # the rule's count where the mechanistic model has none of its own
-    rule = FoldRule(allowed=m_mech.fold_count, required=True)
+    rule = FoldRule(allowed=m_mech.fold_count)
     opts = FitOptions("flutter", guide_rounds=2,
                       train=TrainConfig(adam_steps=150, lbfgs_steps=60))
     guides = round_guides(ds, fit_one_fold(ds, ds.kind.amplitude_window))
@@ -95,14 +95,15 @@ def test_only_a_start_that_breaks_the_rule_is_trained_on(campaign):
     diag, m = evaluate(plain)
     assert m.fold_count == 1
     # the fit's judgement: the rule allows the mechanistic model's folds plus one
-    repairs = GuideRounds(ds, data, m, True, FitOptions("flutter", guide_rounds=2), evaluate,
-                       lambda **kw: None, False)
+    repairs = GuideRounds(ds, data, m, FitOptions("flutter", guide_rounds=2), evaluate,
+                          lambda **kw: None, False)
     assert not repairs.needed(m)
     assert repairs.needed(dataclasses.replace(m, folds=(15.0, 20.0, 22.0)))
-    assert repairs.needed(dataclasses.replace(m, folds=()))     # the data needs a fold
-    assert repairs.rule == FoldRule(allowed=2, required=True)
-    off = GuideRounds(ds, data, m, True, FitOptions("flutter", guide_rounds=0), evaluate,
-                   lambda **kw: None, False)
+    # none where the data needs one is left to the adequacy check (no round adds a fold)
+    assert not repairs.needed(dataclasses.replace(m, folds=()))
+    assert repairs.rule == FoldRule(allowed=2)
+    off = GuideRounds(ds, data, m, FitOptions("flutter", guide_rounds=0), evaluate,
+                      lambda **kw: None, False)
     assert not off.needed(dataclasses.replace(m, folds=(15.0, 20.0, 22.0)))
 
 
@@ -111,9 +112,8 @@ def test_the_fold_rule_measures_how_far_a_diagram_is_from_it(campaign):
     _, m = _evaluate(UDE(mech), ds, diagram_ranges(ds), np.asarray(data.y_scale), TRUTH,
                      "truth")
     with_folds = lambda *f: dataclasses.replace(m, folds=f)
-    rule = FoldRule(allowed=1, required=True)
-    assert [rule.excess(with_folds(*[16.0] * n)) for n in range(4)] == [1, 0, 1, 2]
-    assert FoldRule(allowed=2, required=False).excess(with_folds()) == 0
+    rule = FoldRule(allowed=1)
+    assert [rule.excess(with_folds(*[16.0] * n)) for n in range(4)] == [0, 0, 1, 2]
     # a round is better only nearer the rule and with no more points missed
     assert _better(with_folds(16.0), with_folds(16.0, 20.0, 21.0), rule)
     assert not _better(with_folds(16.0, 20.0), with_folds(16.0, 20.0), rule)
@@ -164,7 +164,7 @@ def test_the_command_line_names_a_bad_round_count(tmp_path, capsys):
 
 def test_the_report_says_what_the_rounds_did():
     rounds = (GuideRound(0.3, 2, 0, 0.031, 0.01), GuideRound(0.9, 1, 0, 0.034, 0.02))
-    rec = {"start": 2, "guide_rounds": GuideRepair(3, FoldRule(1, True), rounds, 2).to_json()}
+    rec = {"start": 2, "guide_rounds": GuideRepair(3, FoldRule(1), rounds, 2).to_json()}
     text = "\n".join(_guide_rounds([{"start": 1}, rec]))
     assert "start 2: 3 folds after training, 1 allowed" in text
     assert "round 1 (weight 0.3): 2 folds" in text and "round 2 (weight 0.9): 1 folds" in text

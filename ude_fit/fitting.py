@@ -379,9 +379,8 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
 
     keys = jax.random.split(jax.random.PRNGKey(opts.seed), opts.starts)
     trained, train_seconds = _train_starts(mech_model, data, opts, keys, say, verbose)
-    fold_needed = needs_fold(ds)
     evaluate = lambda model: _evaluate(model, ds, ranges, scales, ref, ref_source)
-    repairs = GuideRounds(ds, data, mech_m, fold_needed, opts, evaluate, say, verbose)
+    repairs = GuideRounds(ds, data, mech_m, opts, evaluate, say, verbose)
     starts = []
     for k, result in enumerate(trained):
         t0 = time.perf_counter()
@@ -403,6 +402,7 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
         starts.append(rec)
 
     scatter = data_scatter(ds)
+    fold_needed = needs_fold(ds)
     backbone = backbone_metrics(ds)
     ok = [s for s in starts if s.completed]
     for s, a in zip(starts, judge_starts([s.metrics for s in starts], mech_m, opts, scatter,

@@ -1,7 +1,6 @@
 """Guide rounds (``--guide-rounds R``; 2 by default for the aerofoil's network): a start
-whose traced diagram breaks the adequacy check's fold rule (more folds than it allows, or
-none where the data needs one) is trained on with the one-fold curve's guide orbits
-(:mod:`ude_fit.training.guides`), and traced again.
+whose traced diagram has more folds than the adequacy check allows is trained on with the
+one-fold curve's guide orbits (:mod:`ude_fit.training.guides`), and traced again.
 
 Guides trained on from the start (``--guide-orbits``) pull every fit towards a curve a
 few per cent from the points, and cost the simulated campaigns' fits most of their
@@ -12,8 +11,9 @@ reach over the whole amplitude window the diagram is traced and judged in (a bra
 turns back above the guides' top would still count), where no measured orbit is near
 (:func:`round_guides`). Each round trains from the last round's weights at the guides'
 weight, three times the last round's, until the start has a model within the rule or
-``R`` rounds have run. The start keeps the model nearest the rule among those that miss
-no more measured points than the trained one (the earliest of equals: the least guided).
+``R`` rounds have run. The start keeps the model with the fewest folds among those that
+miss no more measured points than the trained one (the earliest of equals: the least
+guided).
 """
 
 from __future__ import annotations
@@ -54,15 +54,15 @@ class GuideRound:
 @dataclass(frozen=True)
 class FoldRule:
     """The adequacy check's fold count (:func:`ude_fit.analysis.adequacy._credible`): at
-    most ``allowed`` folds, and at least one where ``required`` (data with stable and
-    unstable orbits)."""
+    most ``allowed`` folds. (Its other half, one fold at least where the data has stable
+    and unstable orbits, is not a round's business: no round was measured to add one, and
+    on a few points in a narrow window a start without one is common and costly to
+    retrain.)"""
     allowed: int
-    required: bool
 
     def excess(self, m) -> int:
-        """How far ``m``'s diagram is from the rule: its folds beyond those allowed, or 1
-        for none where one is required."""
-        return max(m.fold_count - self.allowed, 0) + int(self.required and m.fold_count == 0)
+        """How far ``m``'s diagram is from the rule: its folds beyond those allowed."""
+        return max(m.fold_count - self.allowed, 0)
 
 
 @dataclass(frozen=True)
@@ -77,21 +77,20 @@ class GuideRepair:
 
     def to_json(self) -> dict:
         return {"folds_before": self.folds_before, "folds_allowed": self.rule.allowed,
-                "fold_required": self.rule.required,
                 "rounds": [r.to_json() for r in self.rounds], "kept_round": self.kept,
                 "stop": self.stop}
 
 
 class GuideRounds:
     """The guide rounds of a fit (``opts.guide_rounds``): which starts break the adequacy
-    rule's picture (more folds than the mechanistic model's count plus one per family, or
-    none where the data needs a fold), and the rounds for them; the one-fold curve is
+    rule's fold count (more folds than the mechanistic model's count plus one per family),
+    and the rounds for them; the one-fold curve is
     fitted once, at the first start that needs it. ``evaluate(model)`` traces a model and
     judges it against the data; ``say`` is the fit's progress callback."""
 
-    def __init__(self, ds, data, mech_m, fold_needed, opts, evaluate, say, verbose):
+    def __init__(self, ds, data, mech_m, opts, evaluate, say, verbose):
         self.ds, self.data, self.opts, self.evaluate = ds, data, opts, evaluate
-        self.rule = FoldRule(mech_m.fold_count + mech_m.families, bool(fold_needed))
+        self.rule = FoldRule(mech_m.fold_count + mech_m.families)
         self.say, self.verbose = say, verbose
         self._guides = None
 

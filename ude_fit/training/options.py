@@ -23,8 +23,8 @@ APPROXIMATORS = ("nn", "gp")
 TRAININGS = ("trajectory", "periodic")
 MECHANISTIC = ("equation", "periodic")
 # guide rounds for a start that breaks the fold rule (ude_fit.guide_rounds), by default:
-# the first at the guide weight, the second at three times it (on lee2020 the second round
-# took one start of six from three folds to one; docs/fitting.md)
+# the first at the guide weight, the second at three times it (on lee2020 seeds 0-2 a
+# second round ran in 7 starts and was the one kept in 1; docs/fitting.md)
 DEFAULT_GUIDE_ROUNDS = 2
 
 
