@@ -113,10 +113,11 @@ def test_compose_file_services_run_as_local_processes(tmp_path, small_campaign, 
         "service_completed_successfully"
     assert services["rig"]["healthcheck"]["test"][1:3] == ["cbc-campaign", "identify"]
 
-    # two starts: on the 4 points of this small campaign one start's diagram can miss every
-    # point (the training's outcome moves with rounding from run to run), and then the fit
-    # service rightly exits 1 (no UDE kept)
-    env = {"LAB_CAMPAIGN": "/app/" + "CAMPAIGN", "LAB_STARTS": "2"}
+    # one start, as the demo's test below fits the same campaign (CI's time: a second start
+    # and its rounds cost 100 s beside the other worker). Where a start's diagram misses
+    # every point the fit service rightly exits 1 (no UDE kept); the demo's test has the
+    # same exposure, and the fit's own tests cover the starts.
+    env = {"LAB_CAMPAIGN": "/app/" + "CAMPAIGN", "LAB_STARTS": "1"}
     port = str(_free_port())
     data = tmp_path / "data"
     data.mkdir()
