@@ -25,7 +25,9 @@ import yaml
 from cbc_controller.log import read_campaign
 from rig_sim.physics.truth import flutter_lco_at, flutter_lco_branch
 
-pytestmark = pytest.mark.minutes(4)   # CI order: tests/conftest.py
+# CI order (tests/conftest.py): the compose and demo tests' campaigns and fits, 6-9 min beside
+# the other worker
+pytestmark = pytest.mark.minutes(7)
 
 REPO = Path(__file__).resolve().parents[1]
 COMPOSE = REPO / "docker-compose.yml"

@@ -25,8 +25,9 @@ import jax  # noqa: E402  (after the imports above, before any array)
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
 
-# the fit takes about 6 min alone on 2 cores, 10 beside the other CI worker
-pytestmark = [pytest.mark.timeout(2400), pytest.mark.minutes(8)]
+# the fit takes about 6 min alone on 2 cores, 10 beside the other CI worker (CI order:
+# tests/conftest.py)
+pytestmark = [pytest.mark.timeout(2400), pytest.mark.minutes(10)]
 
 
 @pytest.fixture(scope="module")

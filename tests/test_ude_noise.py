@@ -20,6 +20,8 @@ jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (s
 
 AIRSPEEDS = (18.0, 19.5, 21.0, 22.5, 23.6)
 SIGMAS = (0.02, 0.04)
+# four fits, 5 min beside the other CI worker (CI order: tests/conftest.py)
+pytestmark = pytest.mark.minutes(5)
 
 
 @pytest.fixture(scope="module")

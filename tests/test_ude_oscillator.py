@@ -33,6 +33,9 @@ jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (s
 DATASETS = {"narrow": (22.5, 23.0), "wide": (20.0, 22.0, 24.0, 26.0)}
 PER_FREQ = 5
 STARTS = 5
+# two datasets' fits, 5 starts each: 2-3 min beside the other CI worker (CI order:
+# tests/conftest.py)
+pytestmark = pytest.mark.minutes(3)
 
 
 @pytest.fixture(scope="module")
