@@ -84,8 +84,8 @@ class GuideRepair:
 class GuideRounds:
     """The guide rounds of a fit (``opts.guide_rounds``): which starts break the adequacy
     rule's fold count (more folds than the mechanistic model's count plus one per family),
-    and the rounds for them; the one-fold curve is
-    fitted once, at the first start that needs it. ``evaluate(model)`` traces a model and
+    and the rounds for them; the one-fold curve is fitted once, at the first start that
+    needs it. ``evaluate(model)`` traces a model and
     judges it against the data; ``say`` is the fit's progress callback."""
 
     def __init__(self, ds, data, mech_m, opts, evaluate, say, verbose):

@@ -162,8 +162,7 @@ def add_fit_arguments(p) -> None:
                    metavar="R",
                    help="aerofoil, the network with periodic training: a start whose traced "
                    "diagram has more folds than the adequacy rule allows is trained on with "
-                   "orbits "
-                   "of a one-fold curve fitted to the points, where no measured orbit is "
+                   "orbits of a one-fold curve fitted to the points, where no measured orbit is "
                    "near, over the whole amplitude window, for up to R rounds, each at three "
                    "times the last round's weight; it keeps the model with the fewest folds "
                    "that misses no more points (docs/fitting.md; default 2 where it applies, 0 "
