@@ -303,6 +303,29 @@ def test_rest_stability_penalty_sees_only_an_equilibrium_unstable_where_labelled
     assert float(_rest_penalty(moved, reg(23.0))) > 0.0
 
 
+def test_rest_stability_holds_at_every_unstable_orbits_own_airspeed():
+    """An unstable limit cycle surrounds a stable equilibrium, so the equilibrium is stable
+    at every airspeed where one was measured. The grid's last point at or below the highest
+    such airspeed can stop short of it: with the grid every 2 m/s and an unstable orbit at
+    24.5 m/s, the design aerofoil (Hopf point 24.07 m/s) meets the grid's hinge (its last
+    point at 23 m/s), and only the hinge at the orbit's own airspeed sees its equilibrium
+    unstable there."""
+    import equinox as eqx
+    import jax.numpy as jnp
+    from ude_fit import UDE, flutter_qs
+    from ude_fit.training.penalties import Regularity, RestStability
+
+    V = jnp.linspace(15.0, 27.0, 7)
+    grid = Regularity(V, jnp.zeros((1, 4)), jnp.ones(4), jnp.asarray(5.0), jnp.zeros(1),
+                      (V <= 24.5).astype(float), jnp.asarray(15.0))
+    at = lambda *v: eqx.tree_at(lambda r: r.surrounded_V, grid, jnp.asarray(v),
+                                is_leaf=lambda x: x is None)
+    value = lambda reg: float(RestStability(1.0).value(UDE(flutter_qs()), reg))
+    assert value(grid) == 0.0
+    assert value(at(20.0, 23.0)) == 0.0
+    assert value(at(20.0, 24.5)) > RestStability(1.0).tolerance
+
+
 def test_hopf_from_unstable_orbits_is_where_their_amplitude_squared_reaches_zero():
     from ude_fit.training.penalties import _hopf_from_unstable
 

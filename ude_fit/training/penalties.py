@@ -54,6 +54,9 @@ class Regularity(eqx.Module):
     # for the energy-rising penalty: airspeeds from half a span below the lowest measured
     # one to the end of the traced range
     rising_V: jax.Array | None = None
+    # for the rest-stability penalty: the measured unstable orbits' own airspeeds, where the
+    # equilibrium each of them surrounds is stable (the grid V may stop short of the highest)
+    surrounded_V: jax.Array | None = None
 
 
 def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> Regularity:
@@ -86,7 +89,8 @@ def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> 
                       jnp.asarray(a_grid),
                       jnp.asarray((V >= v_hopf + 0.1 * span).astype(float)),
                       jnp.asarray(np.arange(P.min() - 0.5 * span, V[-1] + 1e-9,
-                                           span / 4)))
+                                           span / 4)),
+                      jnp.asarray(np.unique(P[lab < 0])) if np.any(lab < 0) else None)
 
 
 def hopf_from_unstable(data: TrainingData) -> float:
@@ -289,7 +293,12 @@ class RestStability(Penalty):
 
         g = jax.vmap(growth)(reg.V)
         r = jax.nn.relu(g + self.margin) ** 2
-        out = jnp.sum(r * reg.rest_stable) / jnp.maximum(1.0, jnp.sum(reg.rest_stable))
+        hinge, count = jnp.sum(r * reg.rest_stable), jnp.sum(reg.rest_stable)
+        if reg.surrounded_V is not None:
+            hinge = hinge + jnp.sum(jax.nn.relu(jax.vmap(growth)(reg.surrounded_V)
+                                                + self.margin) ** 2)
+            count = count + reg.surrounded_V.size
+        out = hinge / jnp.maximum(1.0, count)
         if reg.rest_unstable is None:
             return out
         # and beyond the Hopf point the shrinking unstable orbits point to, an unstable one: a
