@@ -66,6 +66,10 @@ class TrainConfig:
     # (training.rounds.enforce_constraints; 0: none; None: the system's default, 7 for the
     # aerofoil where they apply: FitOptions.applied)
     constraint_rounds: int | None = None
+    # Adam steps before each constraint round's L-BFGS steps (0: L-BFGS alone, from where the
+    # trained start is; Adam restarted there first moves every weight by about its learning
+    # rate: docs/experiments.md, twenty-seventh session)
+    constraint_adam_steps: int = 0
     # aerofoil, periodic training: rounds of training on with the measured orbits asked to
     # lie on the branch from the Hopf point, one turn at most (training.branch; 0: none)
     branch_rounds: int = 0
@@ -84,6 +88,7 @@ class TrainConfig:
         _check_int("param_degree", self.param_degree, 0)
         if self.constraint_rounds is not None:
             _check_int("constraint_rounds", self.constraint_rounds, 0)
+        _check_int("constraint_adam_steps", self.constraint_adam_steps, 0)
         _check_int("branch_rounds", self.branch_rounds, 0)
         _check_int("monotone_rounds", self.monotone_rounds, 0)
         for name in ("equation_steps", "equation_lbfgs_steps", "adam_steps", "lbfgs_steps"):
@@ -386,7 +391,8 @@ class FitOptions:
         """The training configuration with the aerofoil's default rest-free network and
         constraint rounds (fields left at None) switched off where they do not apply: the
         rounds need the network, periodic training and the starts trained one at a time;
-        both need the network (not the GP, not the amplitude form). (An explicit request there was refused above.)"""
+        both need the network (not the GP, not the amplitude form). (An explicit request
+        there was refused above.)"""
         t = self.train
         network = self.approximator == "nn" and t.form == "network"
         if t.rest_free is None and not network:

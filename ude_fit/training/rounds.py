@@ -40,9 +40,12 @@ def enforce_constraints(params, static, mech, data: TrainingData, cfg: TrainConf
     model breaks one of :data:`~.penalties.CONSTRAINTS` (its penalty above its tolerance),
     training goes on with that penalty added at the weight that makes it count as much as
     the data's misfit at that moment, then ten times more each round while it is still
-    broken, for at most ``cfg.constraint_rounds`` rounds. The weight is the data's own
-    business, not the user's: a model that meets every constraint is left exactly as it
-    was, so data whose fit already has the physics' picture is not touched.
+    broken, for at most ``cfg.constraint_rounds`` rounds of ``cfg.lbfgs_steps`` L-BFGS
+    steps each (after ``cfg.constraint_adam_steps`` Adam steps, none by default: Adam
+    restarted at a trained point first moves every weight by about its learning rate,
+    undoing part of the fit before it descends again). The weight is the
+    data's own business, not the user's: a model that meets every constraint is left
+    exactly as it was, so data whose fit already has the physics' picture is not touched.
 
     A round whose loss is not finite is undone and the rounds end there: the start keeps
     the last model that trained.
@@ -66,7 +69,8 @@ def enforce_constraints(params, static, mech, data: TrainingData, cfg: TrainConf
         new, new_loss, failed = descend(
             constrained_periodic_loss, params,
             (static, mech, data, cfg, reg, constraints, jnp.asarray(tried)), lanes=None,
-            adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps, lr=cfg.learning_rate,
+            adam_steps=cfg.constraint_adam_steps, lbfgs_steps=cfg.lbfgs_steps,
+            lr=cfg.learning_rate,
             progress=progress, stage=f"constraints, round {rounds + 1}")
         if failed:
             # the start is not lost: it keeps the model of the last round that trained, whose
