@@ -113,9 +113,10 @@ def _record(g) -> dict | None:
 def _increasing_part(rec: dict) -> dict:
     """The longest stretch of the record whose sample counter increases. A counter that
     jumps forward (samples lost while the ring overran) still dates every sample; one that
-    goes back (a counter read torn across its registers, seen when a busy machine resumed
-    a campaign) dates nothing after it, and fitting the record by those times gave the
-    point an amplitude 22 % off its own board means."""
+    goes back dates nothing after it. Seen when a busy machine resumed a campaign: the rig
+    overwrote ring records while the controller read them, their 16-bit sample numbers
+    were a lap ahead, and the unwrapped counter jumped forward and then back. Fitting that
+    record by its counter put the point's amplitude 22 % below its own board means."""
     sample = rec.get("sample")
     if sample is None or sample.size < 2:
         return rec
