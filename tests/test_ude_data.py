@@ -397,12 +397,13 @@ def test_one_fourier_convention_harmonics_inverts_evaluate():
     np.testing.assert_allclose(amplitude(c), np.hypot(c[:, 1], c[:, K + 1]))
 
 
-def test_a_record_whose_sample_counter_goes_back_is_fitted_on_its_longest_rising_part(
+def test_a_record_whose_sample_counter_jumps_is_fitted_on_its_longest_contiguous_part(
         flutter_noisy, tmp_path):
-    """A raw record whose sample counter jumps back (ring records overwritten while they
-    were read; seen in a campaign resumed on a busy machine) dates nothing after the jump.
-    The loader fits the longest stretch over which the counter rises. Fitting the whole
-    record by its counter put one such point's amplitude 22 % below its own board means."""
+    """A raw record whose sample counter jumps (ring records overwritten while they were
+    read; seen in a campaign resumed on a busy machine) does not date the samples around
+    the jump. The loader fits the longest stretch over which the counter steps by one
+    sample. Fitting the whole record by its counter put one such point's amplitude 22 %
+    below its own board means."""
     import shutil
 
     path, truth = flutter_noisy

@@ -107,20 +107,21 @@ def _record(g) -> dict | None:
     lengths = {v.size for v in out.values()}
     if not out or len(lengths) != 1 or lengths.pop() == 0:
         return None
-    return _increasing_part(out)
+    return _contiguous_part(out)
 
 
-def _increasing_part(rec: dict) -> dict:
-    """The longest stretch of the record whose sample counter increases. A counter that
-    jumps forward (samples lost while the ring overran) still dates every sample; one that
-    goes back dates nothing after it. Seen when a busy machine resumed a campaign: the rig
-    overwrote ring records while the controller read them, their 16-bit sample numbers
-    were a lap ahead, and the unwrapped counter jumped forward and then back. Fitting that
-    record by its counter put the point's amplitude 22 % below its own board means."""
+def _contiguous_part(rec: dict) -> dict:
+    """The longest stretch of the record whose sample counter steps by one sample. Seen when
+    a busy machine resumed a campaign: the rig overwrote ring records while the controller
+    read them, their 16-bit sample numbers were a lap ahead, and the unwrapped counter
+    jumped forward (by 4097 and 61441) and back. The samples around such jumps are not
+    dated by the counter; fitting the whole record by it put one point's amplitude 22 %
+    below its own board means. A stretch too short to fit leaves the point to those means
+    (``_flutter_point``)."""
     sample = rec.get("sample")
     if sample is None or sample.size < 2:
         return rec
-    breaks = np.flatnonzero(np.diff(sample) <= 0) + 1
+    breaks = np.flatnonzero(np.diff(sample) != 1) + 1
     if breaks.size == 0:
         return rec
     edges = np.concatenate([[0], breaks, [sample.size]])
