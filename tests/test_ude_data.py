@@ -407,13 +407,13 @@ def test_a_record_whose_sample_counter_jumps_is_fitted_on_its_longest_contiguous
     import shutil
 
     path, truth = flutter_noisy
-    torn = tmp_path / "torn.h5"
+    torn = tmp_path / "jumped.h5"
     shutil.copy(path, torn)
     with h5py.File(torn, "r+") as f:
         name = sorted(f["points"])[0]
         sample = f["points"][name]["timeseries"]["sample"]
         counter = sample[()]
-        cut = counter.size // 3                # the longest rising part: the last two thirds
+        cut = counter.size // 3                # the longest contiguous part: the last two thirds
         counter[cut:] -= counter[-1] - counter[0] + 5000
         sample[...] = counter
     clean = load([str(path)], system="flutter")[0]
