@@ -174,8 +174,8 @@ class RigClient:
     # ---- sample ring ------------------------------------------------------------------------------
     def pull_ring(self, max_records: int | None = None, restart: bool = False) -> RingBlock:
         """Records written since the last pull (the first pull, or restart=True, starts at
-        the head and returns nothing). Records overwritten before we got to them are
-        counted in `gap`."""
+        the head and returns nothing). Records overwritten before we got to them, or
+        possibly while we read them, are left out and counted in `gap`."""
         pos = self.read("sample_seq", "ring_head")
         head, now = pos["ring_head"], pos["sample_seq"]
         cap = M.RING_CAPACITY
@@ -197,6 +197,16 @@ class RigClient:
             j += n
         raw = np.concatenate(chunks) if chunks else np.zeros((0, M.RING_RECORD), np.uint16)
         self._next_record = stop
+        if chunks:
+            # The rig kept writing while we read: record j's slot holds record j + cap once
+            # the head has passed j + cap, and a slow read (a busy host, a slow line) can
+            # take longer than the clearance above. Such a record would carry the sample
+            # number of a lap later, so every record that may have been overwritten by the
+            # time the last chunk came back is dropped and counted as lost.
+            overwritten = min(len(raw), max(0, self.get("ring_head") - cap + 1 - start))
+            raw = raw[overwritten:]
+            start += overwritten
+            gap += overwritten
         counts = raw.view(np.int16).astype(float)
         data = {f: counts[:, i] / 32767.0 * self._fs[f]
                 for i, f in enumerate(M.RING_FIELDS) if f in self._fs}

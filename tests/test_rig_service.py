@@ -192,6 +192,50 @@ def _lockstep_session(rig_process, seed: int) -> tuple[np.ndarray, list[int]]:
     return np.concatenate(samples), fourier
 
 
+class _RigRunsOnDuringTheRead(RigClient):
+    """A client whose first ring read is slow: the lockstep rig runs `samples` on before the
+    next chunk comes back, as a free-running rig does while a busy host reads."""
+
+    def __init__(self, url: str, samples: int):
+        super().__init__(url, timeout=2.0)
+        self.samples_during_read = samples
+
+    def read_words(self, table, address, count):
+        words = super().read_words(table, address, count)
+        if table == "input" and address >= M.RING_BASE and self.samples_during_read:
+            n, self.samples_during_read = self.samples_during_read, 0
+            self.write(advance=n)
+        return words
+
+
+def test_ring_records_overwritten_during_a_slow_read_are_dropped_and_counted(rig_process):
+    # The first pull's records reach back cap - 64 behind the head; 300 samples written while
+    # the first chunk is read overwrite the oldest ~236 of them, chunks not yet read included.
+    # Kept, they carried the sample numbers of a lap later (a jump of 4096 records forward,
+    # then back), which dated a raw record wrongly in a resumed campaign.
+    rig = rig_process("--rig", "flutter", "--lockstep", "--seed", "3")
+    c = _RigRunsOnDuringTheRead(rig.url, samples=0)
+    c.connect()
+    c.write(watchdog_timeout=60.0, airspeed=23.0, ring_decimation=1)
+    c.pull_ring()                                # start at the current head
+    c.write(advance=M.RING_CAPACITY)             # more than the clearance: 64 lost already
+    head = c.get("ring_head")
+    c.samples_during_read = 300
+    block = c.pull_ring()
+    assert c.get("ring_head") == head + 300
+    assert np.all(np.diff(block.sample) == 1)    # one contiguous, correctly dated stretch
+    assert block.sample[-1] == c.get("sample_seq") - 300 - 1
+    # every record is either kept or counted as lost, and nothing that survived is dropped
+    assert block.first_record + len(block.sample) == head
+    assert block.gap + len(block.sample) == M.RING_CAPACITY
+    assert block.first_record == head + 300 - M.RING_CAPACITY + 1
+    # what was kept is what the rig still holds for those records
+    again = c.read_words("input", M.ring_address(block.first_record), M.RING_RECORD)
+    assert again[0] == block.sample[0] % 65536
+    c.close()
+    rig.stop()
+
+
 def test_lockstep_same_seed_is_bit_for_bit_reproducible(rig_process):
     a, fa = _lockstep_session(rig_process, seed=7)
     b, fb = _lockstep_session(rig_process, seed=7)

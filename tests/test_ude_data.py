@@ -422,3 +422,27 @@ def test_a_record_whose_sample_counter_jumps_is_fitted_on_its_longest_contiguous
     assert loaded.amplitude == pytest.approx(clean.amplitude, rel=0.01)
     assert loaded.periods == pytest.approx(clean.periods * (1 - 1 / 3), rel=0.01)
     assert np.all(np.isfinite(loaded.noise))
+
+
+def test_a_decimated_record_is_fitted_whole(flutter_noisy, tmp_path):
+    """At high time scales the ring keeps one sample in `ring_decimation`; such a record's
+    counter steps by that number throughout, and the loader fits all of it, as it fits a
+    record kept at every sample."""
+    import shutil
+
+    path, truth = flutter_noisy
+    thinned = tmp_path / "decimated.h5"
+    shutil.copy(path, thinned)
+    with h5py.File(thinned, "r+") as f:
+        series = f["points"][sorted(f["points"])[0]]["timeseries"]
+        for field in list(series):
+            kept = series[field][()][::4]
+            del series[field]
+            series[field] = kept
+    clean = load([str(path)], system="flutter")[0]
+    loaded = load([str(thinned)], system="flutter")[0]
+    assert loaded.amplitude == pytest.approx(truth[0]["amplitude"], rel=0.04)
+    assert loaded.amplitude == pytest.approx(clean.amplitude, rel=0.01)
+    assert loaded.periods == pytest.approx(clean.periods, rel=0.01)
+    assert np.all(np.isfinite(loaded.noise))     # a fitted record, not the board's means
+

@@ -111,17 +111,19 @@ def _record(g) -> dict | None:
 
 
 def _contiguous_part(rec: dict) -> dict:
-    """The longest stretch of the record whose sample counter steps by one sample. Seen when
-    a busy machine resumed a campaign: the rig overwrote ring records while the controller
-    read them, their 16-bit sample numbers were a lap ahead, and the unwrapped counter
-    jumped forward (by 4097 and 61441) and back. The samples around such jumps are not
-    dated by the counter; fitting the whole record by it put one point's amplitude 22 %
-    below its own board means. A stretch too short to fit leaves the point to those means
-    (``_flutter_point``)."""
+    """The longest stretch of the record whose sample counter steps by the ring's own step
+    (one record every `ring_decimation` samples: the commonest step). Seen when a busy
+    machine resumed a campaign: the rig overwrote ring records while the controller read
+    them (the controller now drops such records), their 16-bit sample numbers were a lap
+    ahead, and the unwrapped counter jumped forward (by 4097 and 61441) and back. The
+    samples around such jumps are not dated by the counter; fitting the whole record by it
+    put one point's amplitude 22 % below its own board means. A stretch too short to fit
+    leaves the point to those means (``_flutter_point``)."""
     sample = rec.get("sample")
     if sample is None or sample.size < 2:
         return rec
-    breaks = np.flatnonzero(np.diff(sample) != 1) + 1
+    steps, counts = np.unique(np.diff(sample), return_counts=True)
+    breaks = np.flatnonzero(np.diff(sample) != steps[np.argmax(counts)]) + 1
     if breaks.size == 0:
         return rec
     edges = np.concatenate([[0], breaks, [sample.size]])
