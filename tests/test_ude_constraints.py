@@ -18,7 +18,7 @@ from ude_fit import UDE, identify, load, training_data
 from ude_fit.training.options import FitOptions, TrainConfig
 from ude_fit.training.penalties import (constraints_for, EnergyRising, RestStability,
                                         regularity_points)
-from ude_fit.training.rounds import enforce_constraints
+from ude_fit.training.rounds import broken_constraints, enforce_constraints
 
 jax.config.update("jax_enable_x64", True)
 
@@ -51,6 +51,18 @@ def test_the_rest_is_held_stable_at_each_unstable_orbits_airspeed(problem):
     P, label = np.asarray(data.drive.param), np.asarray(data.label)
     assert np.any(label < 0)
     assert np.array_equal(np.asarray(reg.surrounded_V), np.unique(P[label < 0]))
+
+
+def test_a_model_is_checked_against_every_condition(problem):
+    # what the guide rounds ask of each round's model (the conditions a round's training
+    # weighs at 0 included): SpeedDamping's Hopf point at k = 0.5, 1 and -50 (below)
+    data, mech, cfg, _ = problem
+    broken = lambda k: broken_constraints(UDE(mech, SpeedDamping(jnp.asarray(k))), data, cfg)
+    assert broken(0.5) == ()
+    assert broken(1.0) == ("rest-stability",)
+    assert broken(-50.0) == ("energy-rising", "rest-stability")
+    assert broken_constraints(UDE(mech, SpeedDamping(jnp.asarray(1.0))), data,
+                              dataclasses.replace(cfg, constraint_rounds=0)) == ()
 
 
 def test_a_fit_that_meets_the_constraints_is_left_as_it_is(problem):

@@ -122,6 +122,11 @@ def test_the_fold_rule_measures_how_far_a_diagram_is_from_it(campaign):
                                                    summary=SimpleNamespace(missed=missed))
     assert not _better(record(1, 1), record(3, 0), rule)
     assert _better(record(1, 1), record(3, 1), rule)
+    # nor one that breaks a constraint condition the trained model met
+    assert not _better(with_folds(16.0), with_folds(16.0, 20.0, 21.0), rule,
+                       broken=("rest-stability",))
+    assert _better(with_folds(16.0), with_folds(16.0, 20.0, 21.0), rule,
+                   broken=("rest-stability",), broken_before=("rest-stability",))
 
 
 def test_the_constraints_stay_at_their_rounds_weights():
@@ -163,10 +168,15 @@ def test_the_command_line_names_a_bad_round_count(tmp_path, capsys):
 
 
 def test_the_report_says_what_the_rounds_did():
-    rounds = (GuideRound(0.3, 2, 0, 0.031, 0.01), GuideRound(0.9, 1, 0, 0.034, 0.02))
-    rec = {"start": 2, "guide_rounds": GuideRepair(3, FoldRule(1), rounds, 2).to_json()}
+    rounds = (GuideRound(0.3, 2, 0, 0.031, 0.01, ("energy-rising", "rest-stability")),
+              GuideRound(0.9, 1, 0, 0.034, 0.02, ("energy-rising",)))
+    repair = GuideRepair(3, FoldRule(1), rounds, 2, broken_before=("energy-rising",))
+    assert repair.kept_broken == ("energy-rising",)
+    rec = {"start": 2, "guide_rounds": repair.to_json()}
     text = "\n".join(_guide_rounds([{"start": 1}, rec]))
     assert "start 2: 3 folds after training, 1 allowed" in text
-    assert "round 1 (weight 0.3): 2 folds" in text and "round 2 (weight 0.9): 1 folds" in text
+    assert "round 1 (weight 0.3): 2 folds, 0 missed, 3.10 %, breaks `--rest-stability`;" \
+        in text
+    assert "round 2 (weight 0.9): 1 folds, 0 missed, 3.40 %." in text
     assert "Kept round 2's model" in text and "start 1" not in text
     assert _guide_rounds([{"start": 1}]) == []

@@ -395,6 +395,8 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
             if repairs.needed(m):
                 say(event="stage", stage=f"guide rounds, start {k + 1}")
                 model, diag, m, rec.guide_rounds = repairs.run(k + 1, model, diag, m, info)
+                if rec.guide_rounds.kept:        # the record describes the model kept
+                    info = {**info, "constraints_met": not rec.guide_rounds.kept_broken}
             rec.loss, rec.info, rec.metrics = info.get("final_loss"), info, m
             rec.model, rec.diagram = model, diag
         rec.seconds = train_seconds[k] + time.perf_counter() - t0

@@ -28,6 +28,7 @@ from .training.identify import TrainingData
 from .training.optimise import Diverged
 from .training.options import FitOptions
 from .training.penalties import CONSTRAINTS
+from .training.rounds import broken_constraints
 from .training.train import train_on
 
 # guide orbits per round, evenly spaced over the window: about one per tenth of it
@@ -39,16 +40,19 @@ WEIGHT_STEP = 3.0
 
 @dataclass(frozen=True)
 class GuideRound:
-    """One round: the guides' weight and what the traced diagram showed after it."""
+    """One round: the guides' weight, what the traced diagram showed after it, and the
+    constraint conditions its model breaks (by option name)."""
     weight: float
     folds: int
     missed: int
     branch_rms: float | None
     loss: float
+    broken: tuple[str, ...] = ()
 
     def to_json(self) -> dict:
         return {"weight": self.weight, "folds": self.folds, "missed": self.missed,
-                "branch_rms": self.branch_rms, "loss": self.loss}
+                "branch_rms": self.branch_rms, "loss": self.loss,
+                "constraints_broken": list(self.broken)}
 
 
 @dataclass(frozen=True)
@@ -68,17 +72,24 @@ class FoldRule:
 @dataclass(frozen=True)
 class GuideRepair:
     """A start's guide rounds: its folds before them, the rule, every round, the model kept
-    (0: the trained one, k: round k's) and why the rounds ended early, if they did."""
+    (0: the trained one, k: round k's), why the rounds ended early, if they did, and the
+    constraint conditions the trained model broke."""
     folds_before: int
     rule: FoldRule
     rounds: tuple[GuideRound, ...]
     kept: int
     stop: str | None = None
+    broken_before: tuple[str, ...] = ()
+
+    @property
+    def kept_broken(self) -> tuple[str, ...]:
+        """The conditions the kept model breaks."""
+        return self.rounds[self.kept - 1].broken if self.kept else self.broken_before
 
     def to_json(self) -> dict:
         return {"folds_before": self.folds_before, "folds_allowed": self.rule.allowed,
                 "rounds": [r.to_json() for r in self.rounds], "kept_round": self.kept,
-                "stop": self.stop}
+                "stop": self.stop, "constraints_broken_before": list(self.broken_before)}
 
 
 class GuideRounds:
@@ -134,9 +145,11 @@ def repair_start(model: UDE, metrics, diagram, *, data: TrainingData, guides: Or
 
     ``evaluate(model)`` traces a model and judges it against the data: (diagram, metrics).
     ``constraint_weights``: the constraint rounds' final weights, by option name (the
-    conditions stay at them). Returns (model, diagram, metrics, :class:`GuideRepair`) of
-    the model kept."""
+    conditions stay at them; one never broken in training weighs 0, so every round's model
+    is checked against them all, and one that breaks a condition the trained model met is
+    not kept). Returns (model, diagram, metrics, :class:`GuideRepair`) of the model kept."""
     before = metrics.fold_count
+    broken_before = broken_constraints(model, data, opts.train)
     best = (metrics, 0, model, diagram)
     rounds, stop = [], None
     weight = opts.guide_weight
@@ -151,23 +164,28 @@ def repair_start(model: UDE, metrics, diagram, *, data: TrainingData, guides: Or
             stop = f"round {k} undone ({err})"
             break
         diag, m = evaluate(current)
+        broken = broken_constraints(current, data, opts.train)
         rounds.append(GuideRound(weight, m.fold_count, m.summary.missed,
-                                 m.summary.branch_rms, loss))
-        if _better(m, best[0], rule):
+                                 m.summary.branch_rms, loss, broken))
+        if _better(m, best[0], rule, broken, broken_before):
             best = (m, k, current, diag)
         if rule.excess(best[0]) == 0:
             break
         weight *= WEIGHT_STEP
     metrics, kept, model, diagram = best
-    return model, diagram, metrics, GuideRepair(before, rule, tuple(rounds), kept, stop)
+    return model, diagram, metrics, GuideRepair(before, rule, tuple(rounds), kept, stop,
+                                                broken_before)
 
 
-def _better(m, than, rule: FoldRule) -> bool:
-    """A round's model replaces the start's best so far where it is nearer the fold rule and
-    misses no more points: a fold taken away at the price of a measured orbit is no
-    repair."""
+def _better(m, than, rule: FoldRule, broken: tuple[str, ...] = (),
+            broken_before: tuple[str, ...] = ()) -> bool:
+    """A round's model replaces the start's best so far where it is nearer the fold rule,
+    misses no more points and breaks no constraint condition (``broken``) the trained model
+    met (``broken_before``): a fold taken away at the price of a measured orbit, or of the
+    equilibrium's stability where the data shows it, is no repair."""
     return (rule.excess(m) < rule.excess(than)
-            and m.summary.missed <= than.summary.missed)
+            and m.summary.missed <= than.summary.missed
+            and set(broken) <= set(broken_before))
 
 
 def constraint_weights(info: dict) -> dict:

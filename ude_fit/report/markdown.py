@@ -49,8 +49,10 @@ def _guide_rounds(records: list[dict]) -> list[str]:
             continue
         done = "; ".join(f"round {i} (weight {x['weight']:g}): {x['folds']} folds, "
                          f"{x['missed']} missed, {pct(x['branch_rms'])}"
+                         + _newly_broken(x, g)
                          for i, x in enumerate(g["rounds"], 1)) or "no round ran"
-        kept = ("the trained model (no round came nearer the rule without missing a point)"
+        kept = ("the trained model (no round came nearer the rule without missing a point "
+                "or breaking a condition the trained model met)"
                 if g["kept_round"] == 0
                 else f"round {g['kept_round']}'s model")
         stop = f" Stopped: {g['stop']}." if g.get("stop") else ""
@@ -62,6 +64,13 @@ def _guide_rounds(records: list[dict]) -> list[str]:
     return ["", "Guide rounds (`--guide-rounds`): the starts whose diagram had more folds "
             "than allowed were trained on with orbits of the one-fold curve fitted to the "
             "points (docs/fitting.md):", "", *out]
+
+
+def _newly_broken(r: dict, g: dict) -> str:
+    """The constraint conditions a guide round's model breaks that the trained one met."""
+    new = [c for c in r.get("constraints_broken", [])
+           if c not in g.get("constraints_broken_before", [])]
+    return f", breaks {', '.join(f'`--{c}`' for c in new)}" if new else ""
 
 
 def _unknown_stability(d: dict) -> list[str]:

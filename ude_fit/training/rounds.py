@@ -23,7 +23,7 @@ from .losses import branch_loss, constrained_periodic_loss, monotone_loss, perio
 from .monotone import monotone_term, stretches, trace_stretches
 from .optimise import descend
 from .options import TrainConfig
-from .penalties import constraints_for
+from .penalties import constraints_for, regularity_points
 
 
 @eqx.filter_jit
@@ -32,6 +32,23 @@ def _misfit_and_constraints(params, static, mech, data, cfg, reg, constraints):
     model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
     return (periodic_objective(model, params, data, cfg),
             jnp.stack([c.value(model, reg) for c in constraints]))
+
+
+@eqx.filter_jit
+def _constraint_values(model: UDE, reg, constraints):
+    return jnp.stack([c.value(model, reg) for c in constraints])
+
+
+def broken_constraints(model: UDE, data: TrainingData, cfg: TrainConfig) -> tuple[str, ...]:
+    """The conditions of :data:`~.penalties.CONSTRAINTS` that ``model`` breaks on ``data``'s
+    measured orbits (its penalty above its tolerance), by option name; none where the
+    constraint rounds are off."""
+    constraints = constraints_for(cfg.for_system(model.system))
+    if not constraints:
+        return ()
+    values = np.asarray(_constraint_values(model, regularity_points(data.measurements()),
+                                           constraints))
+    return tuple(c.option for c, v in zip(constraints, values) if v > c.tolerance)
 
 
 def enforce_constraints(params, static, mech, data: TrainingData, cfg: TrainConfig, reg, loss,
