@@ -53,6 +53,11 @@ def test_metrics_file_has_both_models_side_by_side(flutter_fit):
         for key in ("branch_rms", "branch_max", "missed", "hopf", "fold", "trajectory_rms"):
             assert key in m[side], (side, key)
     assert m["starts"]["requested"] == 5 and len(m["starts"]["records"]) == 5
+    for r in m["starts"]["records"]:             # where each start's folds are, and how many
+        f = r["metrics"]
+        assert f["fold_count"] == len(f["folds"]) + len(f["isola_folds"]), r
+        assert f["folds"] == sorted(f["folds"])
+        assert (f["fold"]["model"] if f["folds"] else None) == (f["folds"] or [None])[0]
     assert m["data"]["stable"] >= 6 and m["data"]["unstable"] >= 6
     assert m["inputs"][0]["sha256"] and m["version"] and m["command"].startswith("ude-fit fit")
 

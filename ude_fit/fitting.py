@@ -43,7 +43,9 @@ from .training.options import FitOptions
 from .training.train import refine_mechanistic, train_ensemble, train_ude
 
 # the figures of a start's metrics its record keeps (with its fold count)
-_RECORD_METRICS = ("branch_rms", "branch_max", "missed", "trajectory_rms", "hopf", "fold")
+# every start's headline figures, and where its folds are (the adequacy rule counts them)
+_RECORD_METRICS = ("branch_rms", "branch_max", "missed", "trajectory_rms", "hopf", "fold",
+                   "folds", "isolas", "isola_folds")
 
 
 @dataclass
@@ -75,7 +77,7 @@ class StartRecord:
 
     def to_json(self) -> dict:
         """The record as metrics.json keeps it: no model, the scalar training info, the
-        headline metrics and the fold count."""
+        headline metrics, every fold's parameter and the fold count."""
         out = {"start": self.start, "seed": self.seed, "approximator": self.approximator}
         if not self.ok:
             return {**out, "status": self.status, "reason": self.reason,
