@@ -146,7 +146,8 @@ def repair_start(model: UDE, metrics, diagram, *, data: TrainingData, guides: Or
     ``evaluate(model)`` traces a model and judges it against the data: (diagram, metrics).
     ``constraint_weights``: the constraint rounds' final weights, by option name (the
     conditions stay at them; one never broken in training weighs 0, so every round's model
-    is checked against them all and what it breaks is recorded). Returns (model, diagram, metrics, :class:`GuideRepair`) of the model kept."""
+    is checked against them all and what it breaks is recorded). Returns (model, diagram,
+    metrics, :class:`GuideRepair`) of the model kept."""
     before = metrics.fold_count
     broken_before = broken_constraints(model, data, opts.train)
     best = (metrics, 0, model, diagram)
