@@ -198,8 +198,8 @@ class RigClient:
         raw = np.concatenate(chunks) if chunks else np.zeros((0, M.RING_RECORD), np.uint16)
         self._next_record = stop
         if chunks:
-            # The rig kept writing while we read: record j's slot holds record j + cap once
-            # the head has passed j + cap, and a slow read (a busy host, a slow line) can
+            # The rig kept writing while we read: record j's slot may hold record j + cap
+            # once the head has reached j + cap, and a slow read (a busy host, a slow line) can
             # take longer than the clearance above. Such a record would carry the sample
             # number of a lap later, so every record that may have been overwritten by the
             # time the last chunk came back is dropped and counted as lost.

@@ -42,8 +42,8 @@ from .training.optimise import Diverged
 from .training.options import FitOptions
 from .training.train import refine_mechanistic, train_ensemble, train_ude
 
-# the figures of a start's metrics its record keeps (with its fold count)
-# every start's headline figures, and where its folds are (the adequacy rule counts them)
+# the figures of a start's metrics its record keeps (with its fold count): the headline
+# figures, and where its folds are (the adequacy rule counts them)
 _RECORD_METRICS = ("branch_rms", "branch_max", "missed", "trajectory_rms", "hopf", "fold",
                    "folds", "isolas", "isola_folds")
 

@@ -51,8 +51,7 @@ def _guide_rounds(records: list[dict]) -> list[str]:
                          f"{x['missed']} missed, {pct(x['branch_rms'])}"
                          + _newly_broken(x, g)
                          for i, x in enumerate(g["rounds"], 1)) or "no round ran"
-        kept = ("the trained model (no round came nearer the rule without missing a point "
-                "or breaking a condition the trained model met)"
+        kept = ("the trained model (no round came nearer the rule without missing a point)"
                 if g["kept_round"] == 0
                 else f"round {g['kept_round']}'s model")
         stop = f" Stopped: {g['stop']}." if g.get("stop") else ""
