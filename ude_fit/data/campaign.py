@@ -122,8 +122,9 @@ def _contiguous_part(rec: dict) -> dict:
     sample = rec.get("sample")
     if sample is None or sample.size < 2:
         return rec
-    steps, counts = np.unique(np.diff(sample), return_counts=True)
-    breaks = np.flatnonzero(np.diff(sample) != steps[np.argmax(counts)]) + 1
+    step = np.diff(sample)
+    values, counts = np.unique(step, return_counts=True)
+    breaks = np.flatnonzero(step != values[np.argmax(counts)]) + 1
     if breaks.size == 0:
         return rec
     edges = np.concatenate([[0], breaks, [sample.size]])
