@@ -114,6 +114,25 @@ def test_model_file_reloads_to_the_same_model(flutter_fit):
     assert stored == pytest.approx(flutter_fit["metrics"]["ude"]["hopf"]["model"], rel=1e-12)
 
 
+def test_every_start_is_written_with_its_own_diagram(flutter_fit):
+    """Each start's model file: the start's model (the kept one is ude.eqx's), and its
+    stored diagram is the one its record was judged by (Hopf point and folds)."""
+    m = flutter_fit["metrics"]
+    paths = m["models"]["starts"]
+    assert sorted(paths, key=int) == [str(r["start"]) for r in m["starts"]["records"]]
+    kept, _ = load_model(flutter_fit["out"] / "ude.eqx")
+    for r in m["starts"]["records"]:
+        model, header = load_model(flutter_fit["out"] / paths[str(r["start"])])
+        assert header["role"] == f"start {r['start']}" and header["adequate"] == r["adequate"]
+        branch = header["diagram"]["flutter"]
+        assert branch["hopf"]["param"] == pytest.approx(r["metrics"]["hopf"]["model"], rel=1e-12)
+        assert sorted(f["param"] for f in branch["folds"]) == pytest.approx(r["metrics"]["folds"])
+        leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(model.correction)]
+        same = all(np.array_equal(a, np.asarray(b)) for a, b in
+                   zip(leaves, jax.tree_util.tree_leaves(kept.correction)))
+        assert same == (r["start"] == m["starts"]["kept"]), r["start"]
+
+
 def test_diagram_command_retraces_a_saved_model(flutter_fit, tmp_path):
     r = subprocess.run([sys.executable, "-m", "ude_fit.cli", "diagram",
                         str(flutter_fit["out"] / "mechanistic.eqx"), "--retrace",

@@ -28,10 +28,27 @@ def write_fit(out, ds, res, provenance: dict) -> dict:
     figures = _figures(out, ds, res)
     metrics["figures"] = figures
     metrics["models"] = {"mechanistic": "mechanistic.eqx",
-                         "ude": "ude.eqx" if res.ude is not None else None}
+                         "ude": "ude.eqx" if res.ude is not None else None,
+                         "starts": _save_starts(out, res, meta)}
     write_json(os.path.join(out, "metrics.json"), metrics)
     write_text(os.path.join(out, "report.md"), render(metrics, figures))
     return metrics
+
+
+def _save_starts(out, res, meta) -> dict:
+    """Every trained start's model, with its own traced diagram, as ``starts/start_K.eqx``
+    (the kept one included): what the report judges each start by can be redrawn or traced
+    again with ``ude-fit diagram``, not only the kept model's. {start number: path}."""
+    paths = {}
+    for rec in res.starts:
+        if rec.model is None or rec.diagram is None:
+            continue                    # dropped: its training diverged
+        rel = os.path.join("starts", f"start_{rec.start}.eqx")
+        os.makedirs(os.path.join(out, "starts"), exist_ok=True)
+        save_model(os.path.join(out, rel), rec.model, role=f"start {rec.start}",
+                   diagram=rec.diagram.to_json(), adequate=rec.adequate, **meta)
+        paths[str(rec.start)] = rel
+    return paths
 
 
 def _figures(out, ds, res) -> dict:
