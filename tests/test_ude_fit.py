@@ -58,6 +58,14 @@ def test_metrics_file_has_both_models_side_by_side(flutter_fit):
         assert f["fold_count"] == len(f["folds"]) + len(f["isola_folds"]), r
         assert f["folds"] == sorted(f["folds"])
         assert (f["fold"]["model"] if f["folds"] else None) == (f["folds"] or [None])[0]
+        pts = f["fold_points"]                   # the same folds, with their amplitudes
+        assert sorted(p["param"] for p in pts if not p["isola"]) == f["folds"]
+        assert sorted(p["param"] for p in pts if p["isola"]) == f["isola_folds"]
+        # (a trace's last step may pass its amplitude cap)
+        assert all(0 < p["amplitude"] <= 1.5 * m["ranges"]["amp_max"] for p in pts)
+        if pts:                                  # the report says where they are
+            where = f"{pts[0]['param']:.2f} @ {1e3 * pts[0]['amplitude']:.1f}"
+            assert where in (flutter_fit["out"] / "report.md").read_text()
     assert m["data"]["stable"] >= 6 and m["data"]["unstable"] >= 6
     assert m["inputs"][0]["sha256"] and m["version"] and m["command"].startswith("ude-fit fit")
 

@@ -25,6 +25,7 @@ from ._precision import require_float64
 from .analysis.backbone import BackboneFit, backbone_of
 from .analysis.adequacy import data_scatter, error_bar, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
+from .analysis.metrics import fold_points
 from .analysis.metrics_type import ModelMetrics
 from .data.estimates import estimate_from_data
 from .data.one_fold import fit_one_fold
@@ -77,7 +78,8 @@ class StartRecord:
 
     def to_json(self) -> dict:
         """The record as metrics.json keeps it: no model, the scalar training info, the
-        headline metrics, every fold's parameter and the fold count."""
+        headline metrics, every fold's parameter and the fold count, and where each fold
+        is in amplitude as well (``fold_points``)."""
         out = {"start": self.start, "seed": self.seed, "approximator": self.approximator}
         if not self.ok:
             return {**out, "status": self.status, "reason": self.reason,
@@ -88,7 +90,8 @@ class StartRecord:
                    seconds=self.seconds, adequate=self.adequate,
                    metrics={**{k: v for k, v in self.metrics.to_json().items()
                                if k in _RECORD_METRICS},
-                            "fold_count": self.metrics.fold_count})
+                            "fold_count": self.metrics.fold_count,
+                            "fold_points": fold_points(self.diagram)})
         if self.guide_rounds is not None:
             out["guide_rounds"] = self.guide_rounds.to_json()
         return out

@@ -139,25 +139,46 @@ def model_orbit(model, diagram: dict, o, *, scales,
     return best
 
 
+def _counted_folds(diagram: Diagram) -> tuple[list, list]:
+    """A self-excited diagram's folds as counted: the main branch's, and the isolas' not
+    already counted. An isola traced from a measured orbit can be a stretch of a branch
+    already traced (the two met only beyond the point the tracing started from): its
+    folds are those already counted."""
+    seen, others = list(diagram.main.folds), []
+    for bb in diagram.isolas:
+        for f in bb.folds:
+            if not any(same_fold(f, g) for g in seen):
+                seen.append(f)
+                others.append(f)
+    return list(diagram.main.folds), others
+
+
 def locations(diagram: dict) -> dict:
     """Hopf and fold parameters of a traced diagram (None where there is none)."""
     diagram = Diagram.of(diagram)
     b = diagram.main
     if b is not None:
         hopf = b.hopf["param"] if b.hopf else None
-        folds = sorted(f["param"] for f in b.folds)
-        # an isola traced from a measured orbit can be a stretch of a branch already traced
-        # (the two met only beyond the point the tracing started from): its folds are
-        # those already counted
-        seen, others = list(b.folds), []
-        for bb in diagram.isolas:
-            for f in bb.folds:
-                if not any(same_fold(f, g) for g in seen):
-                    seen.append(f)
-                    others.append(f["param"])
-        others.sort()
+        main, isola = _counted_folds(diagram)
+        folds = sorted(f["param"] for f in main)
+        others = sorted(f["param"] for f in isola)
         return {"hopf": hopf, "fold": folds[0] if folds else None, "folds": folds,
                 "isolas": len(diagram.isolas), "isola_folds": others}
     return {"hopf": None, "fold": None,
             "folds": {f"{float(f):g}": sorted(x["param"] for x in b.folds)
                       for f, b in diagram.items()}}
+
+
+def fold_points(diagram: dict) -> list[dict] | dict[str, list[dict]]:
+    """Where a diagram's counted folds are, by amplitude: ``{"param", "amplitude",
+    "isola"}`` for each (self-excited), or per forcing frequency ``{"param",
+    "amplitude"}`` (forced). The same folds :func:`locations` counts."""
+    diagram = Diagram.of(diagram)
+    point = lambda f: {"param": float(f["param"]), "amplitude": float(f["amplitude"])}
+    if diagram.main is not None:
+        main, isola = _counted_folds(diagram)
+        pts = [{**point(f), "isola": False} for f in main]
+        pts += [{**point(f), "isola": True} for f in isola]
+        return sorted(pts, key=lambda f: f["amplitude"])
+    return {f"{float(k):g}": sorted((point(f) for f in b.folds), key=lambda f: f["amplitude"])
+            for k, b in diagram.items()}

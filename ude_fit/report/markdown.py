@@ -40,6 +40,17 @@ def _guides(g: dict | None, unit: str) -> list[str]:
             "is against the measured points."]
 
 
+def _fold_cell(m: dict) -> str:
+    """A start's fold count and, for a self-excited diagram, where each fold is
+    (parameter @ amplitude in mm; "isola" for one on a closed branch of its own)."""
+    pts = m.get("fold_points")
+    if not isinstance(pts, list) or not pts:
+        return str(m.get("fold_count", "—"))
+    where = ", ".join(f"{f['param']:.2f} @ {1e3 * f['amplitude']:.1f}"
+                      + (" (isola)" if f["isola"] else "") for f in pts)
+    return f"{m['fold_count']}: {where}"
+
+
 def _guide_rounds(records: list[dict]) -> list[str]:
     """What the guide rounds (ude_fit.guide_rounds) did to each start they ran on."""
     out = []
@@ -181,14 +192,15 @@ def render(metrics: dict, figures: dict) -> str:
           + ("; and, as the data has stable and unstable orbits, at least one fold (the "
              "branch from the Hopf point turns there to become the stable one)."
              if st["criterion"].get("fold_required") else "."), "",
-          "| start | status | seconds | branch RMS | max | missed | folds | Hopf | fold | "
+          "| start | status | seconds | branch RMS | max | missed | folds (at parameter @ mm) | "
+          "Hopf | fold | "
           "adequate |",
           "|---|---|---|---|---|---|---|---|---|---|"]
     for r in st["records"]:
         m = r.get("metrics") or {}
         L.append(f"| {r['start']} | {r['status']} | {r['seconds']:.1f} | "
                  f"{pct(m.get('branch_rms'))} | {pct(m.get('branch_max'))} | "
-                 f"{m.get('missed', '—')} | {m.get('fold_count', '—')} | "
+                 f"{m.get('missed', '—')} | {_fold_cell(m)} | "
                  f"{location(m.get('hopf'))} | {location(m.get('fold'))} | "
                  f"{'yes' if r.get('adequate') else 'no'} |")
     for d_ in st["dropped"]:
