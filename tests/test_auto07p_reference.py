@@ -86,6 +86,10 @@ def test_ude_fit_continuation_matches_auto(which, nominal, variant):
     hopf = hopf_point(model, (5.0, 40.0))
     assert hopf["param"] == pytest.approx(ref["hopf_V"], rel=1e-4)
     assert hopf["frequency"] == pytest.approx(ref["hopf_freq_hz"], rel=1e-4)
+    # the first Lyapunov coefficient's sign: AUTO's family leaves its HB towards lower V
+    # exactly when the point is subcritical
+    from ude_fit.analysis.criticality import hopf_criticality
+    assert hopf_criticality(model, (5.0, 40.0)).subcritical is ref["hopf_subcritical"]
     branch = trace_flutter(model, v_range=(5.0, 40.0), amp_max=0.12,
                            scales=np.array([0.02, 0.1, 0.3, 1.5]))
     assert len(branch.folds) == 1

@@ -63,10 +63,16 @@ def test_metrics_file_has_both_models_side_by_side(flutter_fit):
         assert sorted(p["param"] for p in pts if p["isola"]) == f["isola_folds"]
         # (a trace's last step may pass its amplitude cap)
         assert all(0 < p["amplitude"] <= 1.5 * m["ranges"]["amp_max"] for p in pts)
+        crit = r["hopf_criticality"]             # the truth's Hopf point is subcritical
+        assert crit["param"] == pytest.approx(f["hopf"]["model"], rel=1e-9)
+        if r["adequate"]:
+            assert crit["subcritical"] and crit["amplitude2_slope"] < 0
         if pts:                                  # the report says where they are
             where = f"{pts[0]['param']:.2f} @ {1e3 * pts[0]['amplitude']:.1f}"
             assert where in (flutter_fit["out"] / "report.md").read_text()
     assert m["data"]["stable"] >= 6 and m["data"]["unstable"] >= 6
+    assert m["data"]["unstable_amplitude2_slope"] < 0
+    assert "Hopf criticality: *sub*" in (flutter_fit["out"] / "report.md").read_text()
     assert m["inputs"][0]["sha256"] and m["version"] and m["command"].startswith("ude-fit fit")
 
 

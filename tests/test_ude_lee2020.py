@@ -89,6 +89,12 @@ def test_the_hopf_point_is_where_the_unstable_orbits_point(lee_fit, capsys):
     # equilibrium that orbit surrounds is stable (the rest-stability condition holds there)
     for r in m["starts"]["records"]:
         assert r["metrics"]["hopf"]["model"] > 25.8, r["metrics"]["hopf"]
+    # the smaller unstable orbits grow as the airspeed falls (a subcritical Hopf point), and
+    # every start's criticality is reported at its own Hopf point
+    assert m["data"]["unstable_amplitude2_slope"] < 0
+    for r in m["starts"]["records"]:
+        assert r["hopf_criticality"]["param"] == pytest.approx(r["metrics"]["hopf"]["model"],
+                                                               rel=1e-9)
     # every start's training ends meeting both conditions the constraint rounds hold it to;
     # a guide round's model is checked again, and the record says what the kept model breaks
     # (measured: the second start's one round broke both, by little: its Hopf point is

@@ -26,8 +26,9 @@ from .analysis.backbone import BackboneFit, backbone_of
 from .analysis.adequacy import data_scatter, error_bar, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
 from .analysis.metrics import fold_points
+from .analysis.criticality import HopfCriticality, hopf_criticality
 from .analysis.metrics_type import ModelMetrics
-from .data.estimates import estimate_from_data
+from .data.estimates import estimate_from_data, unstable_amplitude_line
 from .data.one_fold import fit_one_fold
 from .data.orbit import DataError, OrbitDataset
 from .guide_rounds import GuideRepair, GuideRounds
@@ -66,6 +67,7 @@ class StartRecord:
     model: UDE | None = None
     diagram: dict | None = None
     guide_rounds: GuideRepair | None = None   # where its diagram broke the rule
+    criticality: HopfCriticality | None = None  # its Hopf point's (self-excited data)
 
     @property
     def ok(self) -> bool:
@@ -94,6 +96,8 @@ class StartRecord:
                             "fold_points": fold_points(self.diagram)})
         if self.guide_rounds is not None:
             out["guide_rounds"] = self.guide_rounds.to_json()
+        if self.criticality is not None:
+            out["hopf_criticality"] = self.criticality.to_json()
         return out
 
 
@@ -404,6 +408,8 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                     info = {**info, "constraints_met": not rec.guide_rounds.kept_broken}
             rec.loss, rec.info, rec.metrics = info.get("final_loss"), info, m
             rec.model, rec.diagram = model, diag
+            if ds.kind.autonomous:
+                rec.criticality = hopf_criticality(model, ranges["v_range"])
         rec.seconds = train_seconds[k] + time.perf_counter() - t0
         say(event="start_done", start=k + 1, record=rec)
         starts.append(rec)
@@ -424,6 +430,7 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                    "unstable": int(sum(1 for o in ds if o.stable is False)),
                    "max_amplitude": float(ds.amplitudes().max()),
                    "noise_rms": _relative_noise(ds), "scatter": scatter,
+                   "unstable_amplitude2_slope": _unstable_slope(ds),
                    "unknown_stability": ds.unknown_stability(),
                    "point_records": ds.point_records()}
     return FitResult(options=opts, mechanistic=mech_model,
@@ -447,3 +454,15 @@ def _guided(ds: OrbitDataset, data: TrainingData, mech, opts: FitOptions):
               "orbits": [{"parameter": o.parameter, "amplitude": o.amplitude,
                           "stable": o.stable} for o in guide_ds]}
     return with_guides(data, guide_ds, mech, opts.guide_weight), record
+
+
+def _unstable_slope(ds: OrbitDataset) -> float | None:
+    """The slope of the smaller unstable orbits' squared amplitude in the parameter (m² per
+    unit; the line that points at the Hopf point), to set beside each start's Hopf
+    criticality; None where the data cannot say (forced data, fewer than two unstable
+    orbits)."""
+    if not ds.kind.autonomous:
+        return None
+    un = [o for o in ds if o.stable is False]
+    c = unstable_amplitude_line([o.parameter for o in un], [o.amplitude for o in un])
+    return None if c is None else float(c[0])

@@ -51,6 +51,13 @@ def _fold_cell(m: dict) -> str:
     return f"{m['fold_count']}: {where}"
 
 
+def _criticality_cell(r: dict) -> str:
+    c = r.get("hopf_criticality")
+    if not c:
+        return "—"
+    return f"{'sub' if c['subcritical'] else 'super'}, {1e6 * c['amplitude2_slope']:.4g}"
+
+
 def _guide_rounds(records: list[dict]) -> list[str]:
     """What the guide rounds (ude_fit.guide_rounds) did to each start they ran on."""
     out = []
@@ -193,16 +200,22 @@ def render(metrics: dict, figures: dict) -> str:
              "branch from the Hopf point turns there to become the stable one)."
              if st["criterion"].get("fold_required") else "."), "",
           "| start | status | seconds | branch RMS | max | missed | folds (at parameter @ mm) | "
-          "Hopf | fold | "
-          "adequate |",
-          "|---|---|---|---|---|---|---|---|---|---|"]
+          "Hopf | fold | adequate | Hopf criticality, dA²/dV |",
+          "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in st["records"]:
         m = r.get("metrics") or {}
         L.append(f"| {r['start']} | {r['status']} | {r['seconds']:.1f} | "
                  f"{pct(m.get('branch_rms'))} | {pct(m.get('branch_max'))} | "
                  f"{m.get('missed', '—')} | {_fold_cell(m)} | "
                  f"{location(m.get('hopf'))} | {location(m.get('fold'))} | "
-                 f"{'yes' if r.get('adequate') else 'no'} |")
+                 f"{'yes' if r.get('adequate') else 'no'} | {_criticality_cell(r)} |")
+    slope = d.get("unstable_amplitude2_slope")
+    if any(r.get("hopf_criticality") for r in st["records"]):
+        L.append("\nHopf criticality: *sub* (unstable orbits where the equilibrium is stable) or "
+                 "*super*, from the first Lyapunov coefficient at each start's Hopf point, and "
+                 "the slope it gives the branch's squared heave amplitude there (mm² per "
+                 f"{unit}); the data's smaller unstable orbits: "
+                 + ("no line" if slope is None else f"{1e6 * slope:.4g}") + ".")
     for d_ in st["dropped"]:
         L.append(f"\nStart {d_['start']} dropped: {d_['reason']}.")
     L += _guide_rounds(st["records"])
