@@ -60,7 +60,7 @@ def one_seed(data: str, seed: int, extra: list[str]) -> dict:
     starts = [{"start": r["start"], "adequate": r["adequate"],
                **({k: r["metrics"][k] for k in ("branch_rms", "missed", "fold_count")}
                   | {"hopf": (r["metrics"]["hopf"] or {}).get("model")}
-                  | _guide_rounds(r)
+                  | _guide_rounds(r) | _where(r)
                   if r.get("metrics") else {"status": r["status"]})}
               for r in m["starts"]["records"]]
     return {"seed": seed, "exit": rc, "adequate": m["starts"]["adequate"],
@@ -70,6 +70,14 @@ def one_seed(data: str, seed: int, extra: list[str]) -> dict:
             "kept": m["starts"]["kept"], "ude_branch_rms": (m["ude"] or {}).get("branch_rms"),
             "mechanistic_branch_rms": m["mechanistic"]["branch_rms"],
             "wall_s": round(wall, 1), "starts": starts}
+
+
+def _where(r: dict) -> dict:
+    """Where a start's folds lie (m/s, mm) and whether its Hopf point is subcritical."""
+    crit = r.get("hopf_criticality") or {}
+    return {"folds_at": [[round(f["param"], 2), round(1e3 * f["amplitude"], 1)]
+                         for f in r["metrics"].get("fold_points") or []],
+            "hopf_subcritical": crit.get("subcritical")}
 
 
 def main(argv=None) -> int:
