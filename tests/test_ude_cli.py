@@ -29,7 +29,7 @@ PARAMS_TOML.write_text("k_h = 3300.0\n")
 # every fit option at a value other than its default (the NN approximator's, and the GP's)
 NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory", "--mechanistic", "periodic", "--starts", "3",
             "--seed", "7", "--width", "9", "--depth", "3", "--energy-shape", "1.5",
-            "--energy-rising", "2.5", "--rest-stability", "3.5",
+            "--energy-rising", "2.5", "--rest-stability", "3.5", "--unstable-branch", "7.5",
             "--equilibrium-penalty", "4.5", "--smoothness-penalty", "5.5",
             "--weight-decay", "6.5", "--param-scale", "2", "--param-dependence", "polynomial",
             "--param-degree", "3", "--reference-hopf", "24.1", "--reference-fold", "20.4",
@@ -37,7 +37,7 @@ NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory"
 # the amplitude form of the correction (no network options with it), the constraint, branch
 # and monotone rounds and the amplitude stages (which --training trajectory above excludes)
 FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rounds", "2",
-              "--branch-rounds", "3", "--monotone-rounds", "4", "--amplitude-stages"]
+              "--constrain-unstable-branch", "--branch-rounds", "3", "--monotone-rounds", "4", "--amplitude-stages"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 # the guide orbits (periodic training of the network, without the rounds above)
 GUIDE_FLAGS = ["--guide-orbits", "10", "--guide-weight", "0.5", "--seed", "4"]

@@ -127,7 +127,10 @@ def test_the_fold_rule_measures_how_far_a_diagram_is_from_it(campaign):
 def test_the_constraints_stay_at_their_rounds_weights():
     info = {"energy-rising_weight": 3.0, "rest-stability_weight": 0.0, "other": 1}
     assert constraint_weights(info) == {"energy-rising": 3.0, "rest-stability": 0.0}
-    assert constraint_weights({}) == {"energy-rising": 0.0, "rest-stability": 0.0}
+    # every condition the rounds held (the unstable-branch one where it was asked for)
+    info["unstable-branch_weight"] = 7.0
+    assert constraint_weights(info)["unstable-branch"] == 7.0
+    assert constraint_weights({}) == {}              # no rounds: every condition weighs 0
 
 
 def test_the_rounds_are_on_by_default_where_they_apply():

@@ -27,7 +27,7 @@ from .training.guides import guide_orbits, with_guides
 from .training.identify import TrainingData
 from .training.optimise import Diverged
 from .training.options import FitOptions
-from .training.penalties import CONSTRAINTS
+from .training.penalties import PENALTIES
 from .training.rounds import broken_constraints
 from .training.train import train_on
 
@@ -189,4 +189,5 @@ def _better(m, than, rule: FoldRule) -> bool:
 
 def constraint_weights(info: dict) -> dict:
     """The constraint rounds' final weights from a start's training info, by option name."""
-    return {c.option: info.get(f"{c.option}_weight", 0.0) for c in CONSTRAINTS}
+    return {p.option: info[f"{p.option}_weight"] for p in PENALTIES
+            if f"{p.option}_weight" in info}

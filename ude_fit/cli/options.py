@@ -130,6 +130,12 @@ def add_fit_arguments(p) -> None:
                    "both is left as it is; no weights to choose (docs/fitting.md; default 7 "
                    "for the aerofoil's network trained on periodic orbits one start at a "
                    "time, else 0)")
+    p.add_argument("--constrain-unstable-branch", action="store_true",
+                   help="aerofoil, experimental: the constraint rounds hold the "
+                   "unstable-branch condition too (the model's branch, followed in amplitude "
+                   "from its Hopf point by one-harmonic balance, falls in airspeed all along "
+                   "the unstable stretch the data shows: no supercritical Hopf point and no "
+                   "S-bend between the unstable orbits; docs/fitting.md; off by default)")
     p.add_argument("--branch-rounds", type=positive_int("--branch-rounds", 0),
                    default=0, metavar="N",
                    help="aerofoil, periodic training: N rounds of training on with the "
@@ -219,6 +225,7 @@ def fit_options(args):
                           param_degree=args.param_degree, rest_free=args.rest_free,
                           form=args.correction_form,
                           constraint_rounds=args.constraint_rounds,
+                          constrain_unstable_branch=args.constrain_unstable_branch,
                           branch_rounds=args.branch_rounds,
                           monotone_rounds=args.monotone_rounds,
                           amplitude_stages=args.amplitude_stages,

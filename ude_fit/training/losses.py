@@ -98,13 +98,21 @@ def periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
     return jnp.sum(data.weight * per) / jnp.sum(data.weight)
 
 
+def weighted_constraints(model, reg, constraints, weights):
+    """The constraints' penalties at ``weights``; one weighing 0 is not evaluated (a branch,
+    not a product: some, as the harmonic balance, cost as much as the orbits)."""
+    return sum(jax.lax.cond(w > 0, lambda c=c, w=w: w * c.value(model, reg),
+                            lambda: jnp.zeros(()))
+               for c, w in zip(constraints, weights))
+
+
 def constrained_periodic_loss(params, static, mech, data: TrainingData, cfg: TrainConfig,
                               reg, constraints, weights):
     """The periodic loss plus the broken constraints' penalties at ``weights`` (an array,
     so that raising them needs no new compilation)."""
     # resolved once: for the amplitude form resolving is a Newton solve
     model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
-    extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
+    extra = weighted_constraints(model, reg, constraints, weights)
     return periodic_loss_of(model, params, data, cfg, reg) + extra
 
 
@@ -112,7 +120,7 @@ def branch_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg,
                 weights, trace, points, w_branch):
     """The constrained periodic loss plus the branch term (:mod:`.branch`) at ``w_branch``."""
     model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
-    extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
+    extra = weighted_constraints(model, reg, constraints, weights)
     terms = branch_terms(model, trace, *points)
     return periodic_loss_of(model, params, data, cfg, reg) + extra + w_branch * sum(terms)
 
@@ -122,7 +130,7 @@ def monotone_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, re
     """The constrained periodic loss plus the monotone term (:mod:`.monotone`) at
     ``w_monotone``."""
     model = resolve(UDE(mech, eqx.combine(params["corr"], static)))
-    extra = sum(w * c.value(model, reg) for c, w in zip(constraints, weights))
+    extra = weighted_constraints(model, reg, constraints, weights)
     return (periodic_loss_of(model, params, data, cfg, reg) + extra
             + w_monotone * monotone_term(model, trace, v_span))
 

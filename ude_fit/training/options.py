@@ -70,6 +70,10 @@ class TrainConfig:
     # trained start is; Adam restarted there first moves every weight by about its learning
     # rate: docs/experiments.md, twenty-seventh session)
     constraint_adam_steps: int = 0
+    # the constraint rounds hold the unstable-branch condition too (penalties.UnstableBranch:
+    # the model's branch falls in airspeed as its amplitude grows all along the unstable
+    # stretch the data shows; experimental, off by default: docs/fitting.md)
+    constrain_unstable_branch: bool = False
     # aerofoil, periodic training: rounds of training on with the measured orbits asked to
     # lie on the branch from the Hopf point, one turn at most (training.branch; 0: none)
     branch_rounds: int = 0
@@ -89,6 +93,9 @@ class TrainConfig:
         if self.constraint_rounds is not None:
             _check_int("constraint_rounds", self.constraint_rounds, 0)
         _check_int("constraint_adam_steps", self.constraint_adam_steps, 0)
+        if not isinstance(self.constrain_unstable_branch, bool):
+            raise ValueError("constrain_unstable_branch must be True or False, not "
+                             f"{self.constrain_unstable_branch!r}")
         _check_int("branch_rounds", self.branch_rounds, 0)
         _check_int("monotone_rounds", self.monotone_rounds, 0)
         for name in ("equation_steps", "equation_lbfgs_steps", "adam_steps", "lbfgs_steps"):
@@ -343,6 +350,12 @@ class FitOptions:
                 raise ValueError("/".join(nn_only) + " apply to --approximator nn only")
 
         object.__setattr__(self, "train", self._defaults_that_apply())
+        # (None here is the system's default, 7 rounds: _defaults_that_apply set it to 0
+        # where the rounds do not apply)
+        if self.train.constrain_unstable_branch and self.train.constraint_rounds == 0:
+            raise ValueError("--constrain-unstable-branch needs the constraint rounds "
+                             "(--constraint-rounds N with N > 0; the aerofoil's network "
+                             "trained on periodic orbits one start at a time has 7)")
 
     def _check_guides(self):
         n, w, r = self.guide_orbits, self.guide_weight, self.guide_rounds

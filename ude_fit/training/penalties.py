@@ -24,6 +24,7 @@ import numpy as np
 from .._fourier import amplitude, harmonics
 from .._systems import AirspeedWindow
 from ..data.estimates import unstable_amplitude_line
+from ..models import harmonic_balance
 from ..models.mechanistic import Drive
 from ..models.ude import UDE
 from .identify import TrainingData
@@ -57,6 +58,9 @@ class Regularity(eqx.Module):
     # for the rest-stability penalty: the measured unstable orbits' own airspeeds, where the
     # equilibrium each of them surrounds is stable (the grid V may stop short of the highest)
     surrounded_V: jax.Array | None = None
+    # for the unstable-branch penalty: the unstable branch the data shows, as heave
+    # amplitudes (m), increasing from near the Hopf point (:func:`unstable_band`)
+    band_amp: jax.Array | None = None
 
 
 def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> Regularity:
@@ -79,6 +83,7 @@ def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> 
     # 16 samples per shape: the cycle mean of q' (7 harmonics) times the force is exact
     # while the force has nothing above the 9th harmonic
     every = max(1, ys.shape[1] // 16)
+    band = unstable_band(P, amp, lab)
     return Regularity(jnp.asarray(V), jnp.asarray(ys[:, ::step].reshape(-1, ys.shape[-1])),
                       jnp.asarray(data.y_scale), jnp.asarray(span),
                       jnp.asarray(np.repeat(P, len(range(0, ys.shape[1], step)))),
@@ -90,7 +95,36 @@ def regularity_points(data: TrainingData, n_v: int = 32, per_orbit: int = 8) -> 
                       jnp.asarray((V >= v_hopf + 0.1 * span).astype(float)),
                       jnp.asarray(np.arange(P.min() - 0.5 * span, V[-1] + 1e-9,
                                            span / 4)),
-                      jnp.asarray(np.unique(P[lab < 0])) if np.any(lab < 0) else None)
+                      jnp.asarray(np.unique(P[lab < 0])) if np.any(lab < 0) else None,
+                      None if band is None else jnp.asarray(band))
+
+
+def unstable_band(P, amp, lab, points: int = 24):
+    """The heave amplitudes (points,), increasing, of the unstable branch the data shows,
+    where every orbit of the model must be unstable, followed from the model's Hopf point;
+    None where the data shows no such stretch.
+
+    The stretch is read from the unstable orbits in order of amplitude, from the smallest up,
+    as long as the airspeed falls from one to the next (as it does on an unstable branch
+    from a subcritical Hopf point with one fold; where it rises, the points' scatter decides
+    their order and the data says nothing of the branch between them) and no stable orbit
+    lies between two of them in amplitude. It starts at 5 % of the smallest, near the Hopf
+    point; where a stable orbit is smaller than the smallest unstable one the branch from
+    the Hopf point is not the data's unstable one and there is no stretch."""
+    unstable = np.nonzero(lab < 0)[0]
+    if unstable.size == 0:
+        return None
+    unstable = unstable[np.argsort(amp[unstable])]
+    stable_amps = amp[lab > 0]
+    if np.any(stable_amps < amp[unstable[0]]):
+        return None
+    run = [unstable[0]]
+    for j in unstable[1:]:
+        i = run[-1]
+        if P[j] >= P[i] or np.any((stable_amps > amp[i]) & (stable_amps < amp[j])):
+            break
+        run.append(j)
+    return np.linspace(0.05 * amp[run[0]], amp[run[-1]], points)
 
 
 def hopf_from_unstable(data: TrainingData) -> float:
@@ -309,6 +343,48 @@ class RestStability(Penalty):
 
 
 @dataclass(frozen=True)
+class UnstableBranch(Penalty):
+    margin: float = 0.025
+    option: ClassVar[str] = "unstable-branch"
+    help: ClassVar[str] = ("aerofoil: penalty on a model whose branch's airspeed (its "
+                           'one-harmonic balance, followed in amplitude) does not fall as the '
+                           'amplitude grows along the unstable branch the data shows (from '
+                           "the model's Hopf point up through the unstable orbits that grow "
+                           'as the airspeed falls): against a supercritical '
+                           'Hopf point and S-bends between the unstable orbits (default 0)')
+
+    def value(self, model: UDE, reg: Regularity):
+        """Squared hinge on the model's own branch's slope dV/du along the unstable branch
+        the data shows (:func:`unstable_band`), u = (a / a_top)^2 for heave amplitude a and
+        a_top the largest orbit's, in units of the measured airspeeds' spread: it must be
+        at most ``-margin`` at every amplitude. The branch is the model's one-harmonic
+        balance followed in amplitude (:mod:`ude_fit.models.harmonic_balance`); amplitudes
+        where it does not converge are left out.
+
+        Why: where the work per cycle grows with the airspeed (the energy-rising condition),
+        an orbit is unstable exactly where the branch's airspeed falls as its amplitude
+        grows. The data's unstable orbits, from the Hopf point up, say it falls all along
+        that stretch; a stretch where it rises is a stable piece between two folds (an S the
+        points are too far apart to show), and a rise from zero amplitude is a supercritical
+        Hopf point. In u the slope stays finite at the Hopf point (V - V_H is linear in a^2
+        there), so the smallest amplitudes count as much as the others."""
+        if reg.band_amp is None:
+            return jnp.asarray(0.0)
+        # the model's hidden states (if any) are scaled as the heave
+        scale = jnp.concatenate([reg.y_scale, jnp.full(model.n_state - reg.y_scale.size,
+                                                       reg.y_scale[0])])
+        fixed = harmonic_balance.held(model)
+        z0 = harmonic_balance.hopf_start(fixed, reg.V, reg.band_amp[0])
+        zs, ok = harmonic_balance.follow(fixed, reg.band_amp, z0, scale)
+        zs = jax.lax.stop_gradient(zs)
+        dV_da = harmonic_balance.airspeed_slopes(model, zs, reg.band_amp, scale)
+        a_top = reg.energy_amps[-1] / 1.3
+        slope = dV_da * a_top ** 2 / (2.0 * reg.band_amp) / reg.v_span
+        hinge = jnp.where(ok, jax.nn.relu(jnp.where(ok, slope, 0.0) + self.margin) ** 2, 0.0)
+        return jnp.sum(hinge) / jnp.maximum(1.0, jnp.sum(ok))
+
+
+@dataclass(frozen=True)
 class EquilibriumPenalty(Penalty):
     option: ClassVar[str] = "equilibrium-penalty"
     help: ClassVar[str] = ("aerofoil: penalty on the correction's value and slope at the "
@@ -381,15 +457,20 @@ class WeightDecay(Penalty):
 
 
 # every penalty, in the order the losses add them (the command line's flags come from it)
-PENALTIES = (EnergyShape, EnergyRising, RestStability, EquilibriumPenalty, SmoothnessPenalty,
-             WeightDecay)
+PENALTIES = (EnergyShape, EnergyRising, RestStability, UnstableBranch, EquilibriumPenalty,
+             SmoothnessPenalty, WeightDecay)
 
 # the conditions ``--constraint-rounds`` enforces (training.rounds.enforce_constraints): both
 # hold on the physics' picture (one branch V(A), an equilibrium stable where the data shows it),
-# both are hinges that vanish there, so a fit that meets them is not touched
+# both are hinges that vanish there, so a fit that meets them is not touched;
+# ``--constrain-unstable-branch`` adds UnstableBranch (the same kind of condition, off by
+# default: measured in docs/experiments.md, thirtieth session)
 CONSTRAINTS = (EnergyRising, RestStability)
 
 
 def constraints_for(cfg) -> tuple[Penalty, ...]:
     """The constraints, each at weight 1 (the enforcement sets its own weights)."""
-    return tuple(kind(1.0) for kind in CONSTRAINTS) if cfg.constraint_rounds else ()
+    if not cfg.constraint_rounds:
+        return ()
+    kinds = CONSTRAINTS + ((UnstableBranch,) if cfg.constrain_unstable_branch else ())
+    return tuple(kind(1.0) for kind in kinds)

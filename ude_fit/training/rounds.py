@@ -3,7 +3,8 @@ time): each traces or measures the trained model, sets a term's weight from the 
 and trains on.
 
 * :func:`enforce_constraints` (``constraint_rounds``): the energy-rising and rest-stability
-  conditions (:data:`~.penalties.CONSTRAINTS`) where the fit breaks them.
+  conditions (:data:`~.penalties.CONSTRAINTS`; with ``constrain_unstable_branch`` the
+  unstable-branch condition too) where the fit breaks them.
 * :func:`follow_branch` (``branch_rounds``, experimental): the measured orbits on the branch
   from the Hopf point, traced in amplitude, with one turn at most (:mod:`.branch`).
 * :func:`keep_monotone` (``monotone_rounds``, experimental): the branch monotone between
