@@ -49,7 +49,7 @@ def residual(model, z, a, scale):
     return out / (jnp.abs(omega) * jnp.tile(scale, 3))
 
 
-def _rest(model, V):
+def rest(model, V):
     """The equilibrium near rest at airspeed V and the Jacobian there (Newton from 0)."""
     d = Drive.of(V)
     f = lambda y: model.vector_field(0.0, y, d)
@@ -65,13 +65,13 @@ def hopf_start(model, V_grid, a):
     to heave amplitude a, its frequency and the Hopf airspeed (where the largest growth
     rate, linear between grid points, crosses zero). Where none crosses the guess is at
     the grid's first airspeed and the solves from it are not expected to converge."""
-    growth = jax.vmap(lambda V: jnp.max(jnp.real(jnp.linalg.eigvals(_rest(model, V)[1]))))(
+    growth = jax.vmap(lambda V: jnp.max(jnp.real(jnp.linalg.eigvals(rest(model, V)[1]))))(
         V_grid)
     cross = (growth[:-1] < 0) & (growth[1:] >= 0)
     i = jnp.argmax(cross)
     g0, g1 = growth[i], growth[i + 1]
     V_H = V_grid[i] + (V_grid[i + 1] - V_grid[i]) * (-g0) / jnp.where(g1 > g0, g1 - g0, 1.0)
-    y_eq, J = _rest(model, V_H)
+    y_eq, J = rest(model, V_H)
     lam, vecs = jnp.linalg.eig(J)
     k = jnp.argmax(jnp.where(jnp.imag(lam) > 0, jnp.real(lam), -jnp.inf))
     h = vecs[:, k]

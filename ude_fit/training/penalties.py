@@ -312,17 +312,10 @@ class RestStability(Penalty):
         frequency) at the airspeeds where the data says the equilibrium is stable: a correction
         otherwise free there can move the Hopf point far below the measured orbits. Where the
         data points to a Hopf point, the same hinge the other way beyond it."""
-        y0 = jnp.zeros(model.n_state)
-
         def growth(V):
-            d = Drive.of(V)
-            f = lambda y: model.vector_field(0.0, y, d)
             # at the equilibrium itself: a correction with a force at rest moves it off y = 0,
             # and the Hopf point is that of the moved equilibrium (Newton from y = 0)
-            y = y0
-            for _ in range(3):
-                y = y - jnp.linalg.solve(jax.jacfwd(f)(y), f(y))
-            J = jax.jacfwd(f)(y)
+            J = harmonic_balance.rest(model, V)[1]
             return jnp.max(jnp.real(jnp.linalg.eigvals(J))) / reg.omega
 
         g = jax.vmap(growth)(reg.V)
