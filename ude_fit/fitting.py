@@ -15,6 +15,7 @@ and then the smallest error, and the result says so.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -41,6 +42,7 @@ from .training.guides import guide_orbits, with_guides
 from .training.identify import (INPUT_GAIN, TrainingData, augment, identify, residual_forces,
                                 training_data)
 from .training.optimise import Diverged
+from .training.parameter_errors import parameter_errors, parameter_scatter
 from .training.options import FitOptions
 from .training.train import refine_mechanistic, train_ensemble, train_ude
 
@@ -378,6 +380,8 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
         ident = {"method": "given", "parameters": mech_model.mech.parameters(),
                  "std_error": {}}
     data = augment(data, mech_model.mech)
+    if opts.train.parameter_errors:
+        data = dataclasses.replace(data, param_errors=parameter_errors(data, ds))
     scales = np.asarray(data.y_scale)
     guides = None
     if opts.guide_orbits:
@@ -431,6 +435,9 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                    "max_amplitude": float(ds.amplitudes().max()),
                    "noise_rms": _relative_noise(ds), "scatter": scatter,
                    "unstable_amplitude2_slope": _unstable_slope(ds),
+                   # the airspeeds' own scatter (the --parameter-errors prior's scale)
+                   "parameter_scatter": (parameter_scatter(ds) if ds.kind.autonomous
+                                         else None),
                    "unknown_stability": ds.unknown_stability(),
                    "point_records": ds.point_records()}
     return FitResult(options=opts, mechanistic=mech_model,

@@ -136,6 +136,11 @@ def add_fit_arguments(p) -> None:
                    "from its Hopf point by one-harmonic balance, falls in airspeed all along "
                    "the unstable stretch the data shows: no supercritical Hopf point and no "
                    "S-bend between the unstable orbits; docs/fitting.md; off by default)")
+    p.add_argument("--parameter-errors", action="store_true",
+                   help="aerofoil, periodic training, experimental: every orbit's airspeed "
+                   "is an unknown too, off its measured value at a cost set by the data's own "
+                   "scatter about smooth branches, read in amplitude and in airspeed "
+                   "(orthogonal regression; docs/fitting.md; off by default)")
     p.add_argument("--branch-rounds", type=positive_int("--branch-rounds", 0),
                    default=0, metavar="N",
                    help="aerofoil, periodic training: N rounds of training on with the "
@@ -226,6 +231,7 @@ def fit_options(args):
                           form=args.correction_form,
                           constraint_rounds=args.constraint_rounds,
                           constrain_unstable_branch=args.constrain_unstable_branch,
+                          parameter_errors=args.parameter_errors,
                           branch_rounds=args.branch_rounds,
                           monotone_rounds=args.monotone_rounds,
                           amplitude_stages=args.amplitude_stages,

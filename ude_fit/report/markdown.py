@@ -216,6 +216,15 @@ def render(metrics: dict, figures: dict) -> str:
                  "the slope it gives the branch's squared heave amplitude there (mm² per "
                  f"{unit}); the data's smaller unstable orbits: "
                  + ("no line" if slope is None else f"{1e6 * slope:.4g}") + ".")
+    offsets = [(r["start"], r["info"]["parameter_offsets"]) for r in st["records"]
+               if (r.get("info") or {}).get("parameter_offsets") is not None]
+    if offsets:
+        L.append(f"\nParameter offsets (`--parameter-errors`; the points' scatter in {unit} "
+                 f"about smooth branches, the prior's scale: {d['parameter_scatter']:.3g}): "
+                 "where each start put every measured orbit, in file order, against its "
+                 "logged value. " + "; ".join(
+                     f"start {k}: " + ", ".join(f"{x:+.3g}" for x in off)
+                     for k, off in offsets) + ".")
     for d_ in st["dropped"]:
         L.append(f"\nStart {d_['start']} dropped: {d_['reason']}.")
     L += _guide_rounds(st["records"])

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..data.one_fold import OneFoldCurve
 from ..data.orbit import OrbitDataset
-from .identify import TrainingData, augment, training_data
+from .identify import ParameterErrors, TrainingData, augment, training_data
 
 # the largest guide's amplitude over the largest measured one: a little above the data,
 # where the curve is extrapolated; the smallest guide is the smallest measured orbit's (below
@@ -75,4 +75,8 @@ def with_guides(data: TrainingData, guides: OrbitDataset, mech, weight: float) -
         data.y_scale, data.amp_max,
         cat(jnp.ones(n) if data.weight is None else data.weight,
             jnp.full(g.n_orbits, float(weight))),
-        cat(jnp.ones(data.ys.shape[::2]), jnp.asarray(sw)), n)
+        cat(jnp.ones(data.ys.shape[::2]), jnp.asarray(sw)), n,
+        # a guide sits where the one-fold curve puts it: its airspeed is exact
+        None if data.param_errors is None else ParameterErrors(
+            cat(data.param_errors.sigma, jnp.zeros(g.n_orbits)),
+            cat(data.param_errors.cost, jnp.zeros(g.n_orbits))))

@@ -30,6 +30,17 @@ def derivative_coeffs(c: np.ndarray, omega: float) -> np.ndarray:
     return d
 
 
+class ParameterErrors(eqx.Module):
+    """How far each orbit's bifurcation parameter may sit from its measured value: the
+    offset is ``sigma * u`` with ``u`` an unknown of the periodic stage, and costs
+    ``cost * u**2`` there (:mod:`.parameter_errors`). sigma 0: the parameter is exact."""
+    sigma: jax.Array     # (n_orbits,) the parameter's scatter, in its own unit
+    cost: jax.Array      # (n_orbits,) what a one-sigma offset adds to the orbit's misfit
+
+    def take(self, idx) -> "ParameterErrors":
+        return ParameterErrors(self.sigma[idx], self.cost[idx])
+
+
 class TrainingData(eqx.Module):
     """Every orbit sampled at ``n`` phases: states, accelerations and what drives it."""
     ys: jax.Array        # (n_orbits, n, n_state)
@@ -45,6 +56,8 @@ class TrainingData(eqx.Module):
     state_weight: jax.Array | None = None
     # how many leading orbits are measurements; the rest guide the fit (None: all measured)
     measured: int | None = eqx.field(static=True, default=None)
+    # errors in the measured parameters (None: exact)
+    param_errors: ParameterErrors | None = None
 
     @property
     def n_orbits(self) -> int:
@@ -57,9 +70,11 @@ class TrainingData(eqx.Module):
         if self.measured is None:
             return self
         take = lambda x: x[:self.measured]
+        errors = None if self.param_errors is None else self.param_errors.take(
+            slice(0, self.measured))
         return TrainingData(take(self.ys), take(self.qdd), take(self.period),
                             jax.tree_util.tree_map(take, self.drive), take(self.label),
-                            self.y_scale, self.amp_max)
+                            self.y_scale, self.amp_max, param_errors=errors)
 
     def only(self, active) -> "TrainingData":
         """The orbits where ``active`` (a boolean mask) at weight 1, every other at weight 0
@@ -75,7 +90,8 @@ class TrainingData(eqx.Module):
                             jax.tree_util.tree_map(take, self.drive), take(self.label),
                             self.y_scale, self.amp_max, jnp.asarray(active, float),
                             None if self.state_weight is None else take(self.state_weight),
-                            self.measured)
+                            self.measured,
+                            None if self.param_errors is None else self.param_errors.take(idx))
 
 
 def training_data(ds, n: int = 32) -> TrainingData:
@@ -257,7 +273,8 @@ def augment(data: TrainingData, mech) -> TrainingData:
     if data.measured is not None:
         raise ValueError("augment: the hidden states go in before any guide orbit")
     return TrainingData(jnp.asarray(ys2), data.qdd, data.period, data.drive, data.label,
-                        jnp.asarray(y_scale), data.amp_max, data.weight)
+                        jnp.asarray(y_scale), data.amp_max, data.weight,
+                        param_errors=data.param_errors)
 
 
 def residual_forces(model: UDE, data: TrainingData):

@@ -92,10 +92,28 @@ def periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
 
     y0 = data.ys[:, 0, :] + params["dy0"] * data.y_scale
     T = data.period * (1.0 + params["dT"]) if autonomous else data.period
-    per = jax.vmap(one)(data.ys, y0, T, data.drive, data.label, state_weight)
+    drive, prior = data.drive, 0.0
+    if "dP" in params:            # errors in the measured parameters (.parameter_errors)
+        errors = data.param_errors
+        drive = eqx.tree_at(lambda d: d.param, drive, drive.param + errors.sigma * params["dP"])
+        prior = errors.cost * params["dP"] ** 2
+    per = jax.vmap(one)(data.ys, y0, T, drive, data.label, state_weight) + prior
     if data.weight is None:
         return jnp.mean(per)
     return jnp.sum(data.weight * per) / jnp.sum(data.weight)
+
+
+def orbit_unknowns(data: TrainingData, autonomous: bool, lead: tuple = ()) -> dict:
+    """The periodic stage's unknowns besides the model, all scaled offsets from the
+    measured values (so one Adam step size suits metres, radians, seconds and m/s): every
+    orbit's initial state, its period where the system is autonomous, its parameter where
+    the data says it may be in error. ``lead``: a leading ensemble axis."""
+    unknowns = {"dy0": jnp.zeros(lead + data.ys[:, 0, :].shape)}
+    if autonomous:
+        unknowns["dT"] = jnp.zeros(lead + data.period.shape)
+    if data.param_errors is not None:
+        unknowns["dP"] = jnp.zeros(lead + data.period.shape)
+    return unknowns
 
 
 def weighted_constraints(model, reg, constraints, weights):

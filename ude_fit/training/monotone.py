@@ -102,13 +102,16 @@ def _model_orbit_top(model: UDE, data, params, i: int, n: int):
     state and period), started at the top of its heave swing (h' = 0, the phase condition
     of the residual), as (state, period)."""
     T = float(np.asarray(data.period)[i])
+    V = float(data.drive.param[i])
     start = np.asarray(data.ys[i, 0], float)
     if params is not None:
         start = start + np.asarray(params["dy0"][i]) * np.asarray(data.y_scale)
         if "dT" in params:
             T *= 1.0 + float(np.asarray(params["dT"])[i])
+        if "dP" in params:
+            V += float(data.param_errors.sigma[i] * params["dP"][i])
     ys = np.asarray(_orbit_samples(model, jnp.asarray(start), jnp.asarray(T),
-                                   jnp.asarray(float(data.drive.param[i])), n))
+                                   jnp.asarray(V), n))
     return ys[int(np.argmax(ys[:, 0]))], T
 
 

@@ -85,6 +85,9 @@ class TrainConfig:
     # orbit nearest the Hopf point alone, then one more at a time in the order a branch
     # with one fold meets them (training.branch.amplitude_stages)
     amplitude_stages: bool = False
+    # periodic training: every orbit's parameter an unknown too, with a prior whose scales
+    # are the data's own scatter (training.parameter_errors; experimental, off by default)
+    parameter_errors: bool = False
 
     def __post_init__(self):
         for name in ("width", "depth"):
@@ -96,6 +99,9 @@ class TrainConfig:
         if not isinstance(self.constrain_unstable_branch, bool):
             raise ValueError("constrain_unstable_branch must be True or False, not "
                              f"{self.constrain_unstable_branch!r}")
+        if not isinstance(self.parameter_errors, bool):
+            raise ValueError("parameter_errors must be True or False, not "
+                             f"{self.parameter_errors!r}")
         _check_int("branch_rounds", self.branch_rounds, 0)
         _check_int("monotone_rounds", self.monotone_rounds, 0)
         for name in ("equation_steps", "equation_lbfgs_steps", "adam_steps", "lbfgs_steps"):
@@ -273,6 +279,11 @@ class FitOptions:
                                             or self.training != "periodic"):
             raise ValueError("--amplitude-stages applies to --system flutter with --training "
                              "periodic only (the orbits of a branch from a Hopf point)")
+        if self.train.parameter_errors and (not system_kind(self.system).autonomous
+                                            or self.training != "periodic"):
+            raise ValueError("--parameter-errors applies to --system flutter with --training "
+                             "periodic only (a self-excited system's parameter enters only "
+                             "its vector field)")
         if not system_kind(self.system).autonomous and self.train.form == "amplitude":
             raise ValueError("--correction-form amplitude applies to --system flutter only "
                              "(a self-excited system's orbit sizes)")
@@ -338,6 +349,8 @@ class FitOptions:
                 nn_only.append("--monotone-rounds")
             if self.train.amplitude_stages:
                 nn_only.append("--amplitude-stages")
+            if self.train.parameter_errors:
+                nn_only.append("--parameter-errors")
             if self.train.param_scale != 1.0:
                 nn_only.append("--param-scale")
             if self.train.form != "network":

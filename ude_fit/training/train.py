@@ -44,7 +44,7 @@ from ..models.ude import UDE
 from .amplitude_start import start_amplitude
 from .branch import amplitude_stages
 from .identify import TrainingData, residual_forces
-from .losses import (constrained_periodic_loss, equation_loss, periodic_loss,
+from .losses import (constrained_periodic_loss, equation_loss, orbit_unknowns, periodic_loss,
                      periodic_objective, trajectory_loss)
 from .optimise import Diverged, descend, lane_of, minimize
 from .options import TrainConfig
@@ -141,9 +141,7 @@ def refine_mechanistic(model: UDE, data: TrainingData, *, cfg: TrainConfig, prog
     base = jnp.concatenate([jnp.ravel(jnp.asarray(x, float)) for x in leaves])
     scale = jnp.where(jnp.abs(base) > 0, jnp.abs(base), 1.0)
     positive = jnp.asarray(_positive_mask(mech, sizes))
-    params = {"delta": jnp.zeros(base.size), "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
-    if model.mech.autonomous:                  # the period is an unknown too
-        params["dT"] = jnp.zeros(data.period.shape)
+    params = {"delta": jnp.zeros(base.size), **orbit_unknowns(data, model.mech.autonomous)}
     params, v = minimize(_mech_periodic_loss, params,
                          (mech, sizes, base, scale, positive, data, cfg),
                          adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
@@ -189,9 +187,7 @@ def train_on(model: UDE, data: TrainingData, *, cfg: TrainConfig,
     require_float64("train_on")
     cfg = cfg.for_system(model.system)
     corr, static = eqx.partition(model.correction, _trainable_spec(model.correction))
-    params = {"corr": corr, "dy0": jnp.zeros(data.ys[:, 0, :].shape)}
-    if model.mech.autonomous:
-        params["dT"] = jnp.zeros(data.period.shape)
+    params = {"corr": corr, **orbit_unknowns(data, model.mech.autonomous)}
     # only the conditions the rounds weighted (one at weight 0 would cost its evaluation)
     weighted = {k: w for k, w in (constraint_weights or {}).items() if w}
     constraints = tuple(c for c in constraints_for(cfg) if c.option in weighted)
@@ -241,11 +237,7 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
             lanes=lanes, adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
             lr=cfg.learning_rate, failed=failed, progress=progress, stage="trajectory")
     elif training == "periodic":
-        # initial states and periods as scaled offsets from the measured ones, so one
-        # Adam step size suits metres, radians and seconds alike
-        params = {"corr": params["corr"], "dy0": jnp.zeros(lead + data.ys[:, 0, :].shape)}
-        if model.mech.autonomous:
-            params["dT"] = jnp.zeros(lead + data.period.shape)
+        params = {"corr": params["corr"], **orbit_unknowns(data, model.mech.autonomous, lead)}
         # the orbits one at a time in order of amplitude first, as continuation from the
         # Hopf point meets them (half the steps each), then all of them
         for active in (amplitude_stages(data) if cfg.amplitude_stages else ()):
@@ -279,7 +271,11 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
             out.append(Diverged(failed[i]))
             continue
         corr = lane_of(params["corr"], i) if ensemble else params["corr"]
-        out.append((resolve(UDE(mech, eqx.combine(corr, static))),
-                    {"training": training, "equation_loss": float(eq_loss[i]),
-                     "final_loss": float(loss[i]), **enforced}))
+        info = {"training": training, "equation_loss": float(eq_loss[i]),
+                "final_loss": float(loss[i]), **enforced}
+        if "dP" in params:        # where the fit put each measured orbit's parameter
+            dP = lane_of(params["dP"], i) if ensemble else params["dP"]
+            offset = np.asarray(data.param_errors.sigma * dP)[:data.measurements().n_orbits]
+            info["parameter_offsets"] = [float(x) for x in offset]
+        out.append((resolve(UDE(mech, eqx.combine(corr, static))), info))
     return out
