@@ -90,7 +90,8 @@ class StartRecord:
                     "seconds": self.seconds, "adequate": self.adequate}
         out.update(train_seconds=self.train_seconds, status=self.status, loss=self.loss,
                    info={k: v for k, v in self.info.items()
-                         if isinstance(v, (int, float, str, bool))},
+                         if isinstance(v, (int, float, str, bool)) or (
+                             isinstance(v, list) and all(isinstance(x, float) for x in v))},
                    seconds=self.seconds, adequate=self.adequate,
                    metrics={**{k: v for k, v in self.metrics.to_json().items()
                                if k in _RECORD_METRICS},
