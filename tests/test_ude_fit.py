@@ -552,7 +552,7 @@ def test_data_scatter_is_the_residual_standard_deviation_about_quadratics():
     comes back whole, its sum of squares divided by the degrees of freedom left (4 + 7
     points, 3 + 3 taken by the two fits), not by the number of points."""
     from ude_fit import Orbit, OrbitDataset
-    from ude_fit.analysis.adequacy import data_scatter
+    from ude_fit.data.estimates import data_scatter
 
     def orbit(V, A, stable):
         c = np.zeros((2, 15))

@@ -13,13 +13,13 @@ import pytest
 
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import UDE, identify, load, training_data
-from ude_fit.analysis.adequacy import data_scatter
 from ude_fit.data.orbit import Orbit, OrbitDataset
 from ude_fit.training.identify import ParameterErrors
 from ude_fit.training.losses import orbit_unknowns, periodic_objective
 from ude_fit.training.optimise import minimize
 from ude_fit.training.options import FitOptions, TrainConfig
-from ude_fit.training.parameter_errors import parameter_errors, parameter_scatter
+from ude_fit.data.estimates import data_scatter, parameter_scatter
+from ude_fit.training.parameter_errors import parameter_errors
 
 jax.config.update("jax_enable_x64", True)
 

@@ -26,13 +26,13 @@ import numpy as np
 
 from ._precision import require_float64
 from .analysis.backbone import BackboneFit, backbone_of
-from .analysis.adequacy import (data_scatter, error_bar, judge_starts, kept_start,
-                                needs_fold)
+from .analysis.adequacy import error_bar, judge_starts, kept_start, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
 from .analysis.metrics import fold_points
 from .analysis.criticality import HopfCriticality, hopf_criticality
 from .analysis.metrics_type import ModelMetrics
-from .data.estimates import estimate_from_data, unstable_amplitude_line
+from .data.estimates import (data_scatter, estimate_from_data, parameter_scatter,
+                             unstable_amplitude_line)
 from .data.one_fold import fit_one_fold
 from .data.orbit import DataError, OrbitDataset
 from .guide_rounds import GuideRepair, GuideRounds
@@ -45,7 +45,7 @@ from .training.guides import guide_orbits, with_guides
 from .training.identify import (INPUT_GAIN, TrainingData, augment, identify, residual_forces,
                                 training_data)
 from .training.optimise import Diverged
-from .training.parameter_errors import parameter_errors, parameter_scatter
+from .training.parameter_errors import parameter_errors
 from .training.options import FitOptions
 from .training.train import refine_mechanistic, train_ensemble, train_ude
 

@@ -1,6 +1,7 @@
 """Adequacy of a fitted start (the paper found single trainings often land in poor local
-minima; see :mod:`ude_fit.fitting`): the data's own scatter, fold counts, the checks a
-start must pass, and the judgement of every start against the best credible one."""
+minima; see :mod:`ude_fit.fitting`): fold counts, the checks a start must pass, the
+judgement of every start against the best credible one and the choice of the one kept (the
+data's own scatter, which they read, is :func:`ude_fit.data.estimates.data_scatter`)."""
 
 from __future__ import annotations
 
@@ -9,31 +10,6 @@ import numpy as np
 from ..data.orbit import OrbitDataset
 from ..training.options import FitOptions
 from .metrics_type import ModelMetrics
-
-
-def data_scatter(ds: OrbitDataset) -> float:
-    """How far the measured points themselves lie from smooth branches: the residual
-    standard deviation of a quadratic in the parameter through each stability class (of 4
-    or more points; per frequency for the oscillator), over the largest amplitude. No fit
-    can be asked to be closer to the data than this.
-
-    The residuals' plain RMS would underestimate the scatter: each quadratic is fitted to
-    the very points it is judged on and takes 3 of their degrees of freedom (with 4 points,
-    3 of 4), so the sum of squares is divided by the points left over, as the textbook
-    unbiased estimate of a regression's residual variance does."""
-    A, a_max = ds.amplitudes(), float(ds.amplitudes().max())
-    P = ds.parameters()
-    groups = [np.ones(len(ds), bool)] if ds.kind.autonomous else [
-        np.round(ds.frequencies(), 6) == f for f in ds.frequencies_group()]
-    res, dof = [], 0
-    for g in groups:
-        for label in (True, False):
-            m = g & np.array([o.stable is label for o in ds.orbits])
-            if m.sum() >= 4 and np.ptp(P[m]) > 0:
-                c = np.polyfit(P[m], A[m], 2)
-                res.extend((A[m] - np.polyval(c, P[m])).tolist())
-                dof += int(m.sum()) - 3
-    return float(np.sqrt(np.sum(np.square(res)) / dof) / a_max) if dof > 0 else 0.0
 
 
 def error_bar(mech_m: ModelMetrics, baseline_rms: float | None = None
@@ -106,8 +82,6 @@ def needs_fold(ds: OrbitDataset) -> bool:
     at a fold to become the stable one, so a diagram needs one."""
     return ds.kind.autonomous and any(o.stable is True for o in ds) and any(
         o.stable is False for o in ds)
-
-
 
 
 def kept_start(start_metrics: list[ModelMetrics | None], adequate: list[bool],

@@ -1,6 +1,7 @@
 """What the measured points alone say about the diagram: the Hopf point the unstable orbits
 extrapolate to, and the fold where the branch turns (rough; for reporting when no truth
-is given, and for the penalties that need to know where the Hopf point lies)."""
+is given, and for the penalties that need to know where the Hopf point lies); and how far
+the points scatter about smooth branches, in amplitude and in the parameter."""
 
 from __future__ import annotations
 
@@ -47,3 +48,43 @@ def unstable_amplitude_line(V, A):
     if np.ptp(V[idx]) == 0:
         return None
     return np.polyfit(V[idx], A[idx] ** 2, 1)
+
+
+def data_scatter(ds: OrbitDataset) -> float:
+    """How far the measured points themselves lie from smooth branches: the residual
+    standard deviation of a quadratic in the parameter through each stability class (of 4
+    or more points; per frequency for the oscillator), over the largest amplitude. No fit
+    can be asked to be closer to the data than this.
+
+    The residuals' plain RMS would underestimate the scatter: each quadratic is fitted to
+    the very points it is judged on and takes 3 of their degrees of freedom (with 4 points,
+    3 of 4), so the sum of squares is divided by the points left over, as the textbook
+    unbiased estimate of a regression's residual variance does."""
+    A, a_max = ds.amplitudes(), float(ds.amplitudes().max())
+    P = ds.parameters()
+    groups = [np.ones(len(ds), bool)] if ds.kind.autonomous else [
+        np.round(ds.frequencies(), 6) == f for f in ds.frequencies_group()]
+    res, dof = [], 0
+    for g in groups:
+        for label in (True, False):
+            m = g & np.array([o.stable is label for o in ds.orbits])
+            if m.sum() >= 4 and np.ptp(P[m]) > 0:
+                c = np.polyfit(P[m], A[m], 2)
+                res.extend((A[m] - np.polyval(c, P[m])).tolist())
+                dof += int(m.sum()) - 3
+    return float(np.sqrt(np.sum(np.square(res)) / dof) / a_max) if dof > 0 else 0.0
+
+
+def parameter_scatter(ds: OrbitDataset) -> float:
+    """The parameter's residual standard deviation about a quadratic in the amplitude
+    through each stability class of 4 or more points, pooled with their degrees of freedom
+    (0 where there is no such class)."""
+    A, P = ds.amplitudes(), ds.parameters()
+    res, dof = [], 0
+    for label in (True, False):
+        m = np.array([o.stable is label for o in ds.orbits])
+        if m.sum() >= 4 and np.ptp(A[m]) > 0:
+            c = np.polyfit(A[m], P[m], 2)
+            res.extend((P[m] - np.polyval(c, A[m])).tolist())
+            dof += int(m.sum()) - 3
+    return float(np.sqrt(np.sum(np.square(res)) / dof)) if dof > 0 else 0.0

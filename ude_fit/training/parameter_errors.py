@@ -8,11 +8,12 @@ with a Gaussian prior: the orbit's misfit gains ``cost_i * u_i**2``.
 
 Both scales come from the data's own scatter about smooth branches, read both ways:
 
-* ``sigma``: the residual standard deviation of the parameter about a quadratic in the
-  amplitude through each stability class (a branch's parameter is a single-valued function
-  of its amplitude on either side of a fold or Hopf point), with its degrees of freedom;
+* ``sigma`` (:func:`~ude_fit.data.estimates.parameter_scatter`): the residual standard
+  deviation of the parameter about a quadratic in the amplitude through each stability
+  class (a branch's parameter is a single-valued function of its amplitude on either side
+  of a fold or Hopf point), with its degrees of freedom;
 * ``cost_i``: what missing orbit i's amplitude by the amplitude scatter
-  (:func:`~ude_fit.analysis.adequacy.data_scatter`) adds to its misfit, the whole orbit
+  (:func:`~ude_fit.data.estimates.data_scatter`) adds to its misfit, the whole orbit
   scaled.
 
 So a one-sigma shift of the parameter costs what a one-sigma miss of the amplitude does, and
@@ -25,24 +26,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ..analysis.adequacy import data_scatter
+from ..data.estimates import data_scatter, parameter_scatter
 from ..data.orbit import OrbitDataset
 from .identify import ParameterErrors, TrainingData
-
-
-def parameter_scatter(ds: OrbitDataset) -> float:
-    """The parameter's residual standard deviation about a quadratic in the amplitude
-    through each stability class of 4 or more points, pooled with their degrees of freedom
-    (0 where there is no such class)."""
-    A, P = ds.amplitudes(), ds.parameters()
-    res, dof = [], 0
-    for label in (True, False):
-        m = np.array([o.stable is label for o in ds.orbits])
-        if m.sum() >= 4 and np.ptp(A[m]) > 0:
-            c = np.polyfit(A[m], P[m], 2)
-            res.extend((P[m] - np.polyval(c, A[m])).tolist())
-            dof += int(m.sum()) - 3
-    return float(np.sqrt(np.sum(np.square(res)) / dof)) if dof > 0 else 0.0
 
 
 def parameter_errors(data: TrainingData, ds: OrbitDataset) -> ParameterErrors:
