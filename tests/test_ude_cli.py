@@ -37,7 +37,8 @@ NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory"
 # the amplitude form of the correction (no network options with it), the constraint, branch
 # and monotone rounds and the amplitude stages (which --training trajectory above excludes)
 FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rounds", "2",
-              "--constrain-unstable-branch", "--branch-rounds", "3", "--monotone-rounds", "4", "--amplitude-stages"]
+              "--constrain-unstable-branch", "--parameter-errors", "--branch-rounds", "3",
+              "--monotone-rounds", "4", "--amplitude-stages"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 # the guide orbits (periodic training of the network, without the rounds above)
 GUIDE_FLAGS = ["--guide-orbits", "10", "--guide-weight", "0.5", "--seed", "4"]

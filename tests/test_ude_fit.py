@@ -571,36 +571,15 @@ def test_data_scatter_is_the_residual_standard_deviation_about_quadratics():
     assert data_scatter(ds) == pytest.approx(np.sqrt(np.sum(e ** 2) / 5) / a_max, rel=1e-6)
 
 
-def _figures(rms, folds, missed=0, hopf=None):
+def _figures(rms, folds, missed=0):
     """A self-excited model's metrics with only what adequacy reads: the branch RMS, the
-    missed count, the folds and the Hopf point (no points, no isolas)."""
+    missed count and the folds (no points, no isolas)."""
     from ude_fit.analysis.metrics_type import (BifurcationLocation, BranchErrors,
                                                BranchSummary, ModelMetrics, PointError)
     points = [PointError(20.0, 2.4, 0.05, None)] * missed
     return ModelMetrics(BranchErrors(BranchSummary(rms, None, rms, missed, None), points),
-                        BifurcationLocation(hopf), BifurcationLocation(None), folds, 0,
+                        BifurcationLocation(None), BifurcationLocation(None), folds, 0,
                         ())
-
-
-def test_among_starts_under_the_data_scatter_the_hopf_point_nearest_the_points_is_kept():
-    """Branch errors under the points' own scatter do not tell starts apart; the Hopf point
-    the unstable orbits' amplitude^2 line points at does. Above the scatter, or with no such
-    estimate, the smallest error wins as before; an inadequate start is never kept over an
-    adequate one."""
-    from ude_fit.analysis.adequacy import kept_start
-
-    close_far = _figures(0.028, [20.4], hopf=26.88)
-    close_near = _figures(0.039, [20.4], hopf=25.87)
-    loose_nearest = _figures(0.05, [20.4], hopf=26.34)
-    starts, adequate = [close_far, close_near, loose_nearest], [True, True, True]
-    assert kept_start(starts, adequate, 0.042, 26.34) == 1
-    assert kept_start(starts, adequate, 0.042, None) == 0        # no estimate
-    assert kept_start(starts, adequate, 0.030, 26.34) == 0       # only one under the scatter
-    assert kept_start(starts, [True, False, True], 0.042, 26.34) == 0
-    # nothing adequate: the fewest missed, then the smallest error; nothing trained: None
-    missing = _figures(0.01, [20.4], missed=1, hopf=26.34)
-    assert kept_start([missing, close_far], [False, False], 0.042, 26.34) == 1
-    assert kept_start([None, None], [False, False], 0.042, 26.34) is None
 
 
 def test_a_start_that_snakes_through_the_points_does_not_set_the_bar():

