@@ -60,31 +60,34 @@ def data_scatter(ds: OrbitDataset) -> float:
     the very points it is judged on and takes 3 of their degrees of freedom (with 4 points,
     3 of 4), so the sum of squares is divided by the points left over, as the textbook
     unbiased estimate of a regression's residual variance does."""
-    A, a_max = ds.amplitudes(), float(ds.amplitudes().max())
-    P = ds.parameters()
+    A, P = ds.amplitudes(), ds.parameters()
     groups = [np.ones(len(ds), bool)] if ds.kind.autonomous else [
         np.round(ds.frequencies(), 6) == f for f in ds.frequencies_group()]
-    res, dof = [], 0
-    for g in groups:
-        for label in (True, False):
-            m = g & np.array([o.stable is label for o in ds.orbits])
-            if m.sum() >= 4 and np.ptp(P[m]) > 0:
-                c = np.polyfit(P[m], A[m], 2)
-                res.extend((A[m] - np.polyval(c, P[m])).tolist())
-                dof += int(m.sum()) - 3
-    return float(np.sqrt(np.sum(np.square(res)) / dof) / a_max) if dof > 0 else 0.0
+    return _pooled_quadratic_sd(P, A, [g & m for g in groups for m in _stability_classes(ds)]
+                                ) / float(A.max())
 
 
 def parameter_scatter(ds: OrbitDataset) -> float:
     """The parameter's residual standard deviation about a quadratic in the amplitude
     through each stability class of 4 or more points, pooled with their degrees of freedom
     (0 where there is no such class)."""
-    A, P = ds.amplitudes(), ds.parameters()
-    res, dof = [], 0
-    for label in (True, False):
-        m = np.array([o.stable is label for o in ds.orbits])
-        if m.sum() >= 4 and np.ptp(A[m]) > 0:
-            c = np.polyfit(A[m], P[m], 2)
-            res.extend((P[m] - np.polyval(c, A[m])).tolist())
+    return _pooled_quadratic_sd(ds.amplitudes(), ds.parameters(), _stability_classes(ds))
+
+
+def _stability_classes(ds: OrbitDataset) -> list[np.ndarray]:
+    """Masks of the stable and of the unstable points (points of unknown stability are in
+    neither)."""
+    return [np.array([o.stable is label for o in ds.orbits]) for label in (True, False)]
+
+
+def _pooled_quadratic_sd(x: np.ndarray, y: np.ndarray, masks: list[np.ndarray]) -> float:
+    """The residual standard deviation of ``y`` about a quadratic in ``x`` fitted within
+    each mask of 4 or more points spread in ``x``, pooled over the masks with their
+    degrees of freedom (0 where no mask qualifies)."""
+    ss, dof = 0.0, 0
+    for m in masks:
+        if m.sum() >= 4 and np.ptp(x[m]) > 0:
+            c = np.polyfit(x[m], y[m], 2)
+            ss += float(np.sum(np.square(y[m] - np.polyval(c, x[m]))))
             dof += int(m.sum()) - 3
-    return float(np.sqrt(np.sum(np.square(res)) / dof)) if dof > 0 else 0.0
+    return float(np.sqrt(ss / dof)) if dof > 0 else 0.0
