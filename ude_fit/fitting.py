@@ -38,7 +38,8 @@ from .models.mechanistic import FLUTTER_NOMINAL
 from .models.parameter_file import MechanisticParameters
 from .models.ude import UDE
 from .training.gp import fit_gp
-from .training.control import ControlInput, control_input, with_control
+from .training.control import (ControlInput, against_heave_stiffness, control_input,
+                               with_control)
 from .training.guides import guide_orbits, with_guides
 from .training.identify import (INPUT_GAIN, TrainingData, augment, identify, residual_forces,
                                 training_data)
@@ -319,6 +320,8 @@ def _identify_with_control(ds: OrbitDataset, data: TrainingData, opts: FitOption
                                            given=opts.mechanistic_parameters,
                                            effects=opts.mechanistic_effects)
         ident["control"] = ctrl.to_json()
+    ident["control"]["against_heave_stiffness"] = against_heave_stiffness(
+        ds, ctrl.gain, mech.values()["k_h"])
     return with_control(data, ds, ctrl.gain), mech, ident
 
 

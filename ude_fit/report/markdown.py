@@ -101,27 +101,38 @@ def _unknown_stability(d: dict) -> list[str]:
             "them.", ""]
 
 
-def _holding(d: dict) -> list[str]:
-    """The holding control's invasiveness per point (data/holding.py)."""
+def _holding(d: dict, control: dict | None) -> list[str]:
+    """The holding control's invasiveness per point (data/holding.py); with the control as
+    a known input, also its force against the heave spring's (training/control.py)."""
     rows = [r for r in d.get("point_records", []) if r.get("holding")]
     if not rows:
         return []
+    spring = (control or {}).get("against_heave_stiffness")
     L = ["### Holding control", "",
          "How invasive the control that held each point was: its first harmonic (in the "
          "channel's unit) and that in standard errors of the same channel's noise, that "
          "relative to the response scaled by the controller's gains (where known), and the "
          "target's first harmonic against the response's. *Invasive*: a control fundamental "
-         "more than 3 standard errors from zero.", "",
+         "more than 3 standard errors from zero."
+         + ("" if spring is None else
+            f" With the control as an input (gain {control['gain']:.4g} N per "
+            f"{control['unit']}, {control['gain_source']}): its force's fundamental against "
+            "the heave spring's, k_h times the heave fundamental (k_h of the mechanistic "
+            "model identified with it)."), "",
          "| point | parameter | control 1st harmonic | in standard errors | "
-         "relative to gains x response | target vs response | invasive |",
-         "|---|---|---|---|---|---|---|"]
-    for r in rows:
-        h = r["holding"]
+         "relative to gains x response | target vs response | invasive |"
+         + ("" if spring is None else " against the heave spring |"),
+         "|---|---|---|---|---|---|---|" + ("" if spring is None else "---|")]
+    for k, r in enumerate(d.get("point_records", [])):
+        h = r.get("holding")
+        if not h:
+            continue
         rel = h["control_relative_to_gains"]
         L.append(f"| `{r['source']}` | {r['parameter']:.4g} | {h['control_amplitude']:.3g} "
                  f"{h['control_unit']} | {h['control_significance']:.3g} | "
                  f"{'—' if rel is None else pct(rel)} | {pct(h['target_mismatch'])} | "
-                 f"{'yes' if h['invasive'] else 'no'} |")
+                 f"{'yes' if h['invasive'] else 'no'} |"
+                 + ("" if spring is None else f" {pct(spring[k])} |"))
     return L + [""]
 
 
@@ -139,7 +150,8 @@ def render(metrics: dict, figures: dict) -> str:
          f"{d['points'] - d['stable'] - d['unstable']} of unknown stability) from "
          + ", ".join(f"`{s}`" for s in d["sources"]) + ".",
          f"Largest measured amplitude {1e3 * d['max_amplitude']:.3f} mm; amplitude errors are "
-         "relative to it.", ""] + _unknown_stability(d) + _holding(d) + [
+         "relative to it.", ""] + _unknown_stability(d) + _holding(
+            d, mech.get("identification", {}).get("control")) + [
          "## Models side by side", "",
          f"UDE: {metrics['approximator'].upper()} correction, training `{metrics['training']}`, "
          f"start {ude['start'] if ude else '—'} of {metrics['starts']['requested']} kept.", "",

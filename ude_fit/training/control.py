@@ -65,3 +65,20 @@ def with_control(data: TrainingData, ds: OrbitDataset, gain: float) -> TrainingD
         raise ValueError(f"the control gain must be finite, not {gain!r}")
     fc = jnp.asarray(np.stack([gain * np.asarray(o.control, float) for o in ds]))
     return eqx.tree_at(lambda d: d.drive.fc, data, fc)
+
+
+def against_heave_stiffness(ds: OrbitDataset, gain: float, k_heave: float
+                            ) -> list[float | None]:
+    """Per point, how much of the heave spring's force the holding control supplied: the
+    control force's fundamental against the spring's at the orbit's heave fundamental,
+    |gain u1| / (k_h |h1|), with the gain in N per unit of the record and k_h the
+    mechanistic model's heave stiffness. A non-invasive point gives 0; None where the point
+    has no control record or the ratio has no meaning (k_h or the amplitude 0)."""
+    out = []
+    for o in ds:
+        spring = k_heave * o.amplitude
+        if o.holding is None or not spring > 0:
+            out.append(None)
+        else:
+            out.append(abs(gain) * o.holding.control_amplitude / spring)
+    return out
