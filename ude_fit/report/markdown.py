@@ -104,8 +104,8 @@ def _unknown_stability(d: dict) -> list[str]:
 def _holding(d: dict, control: dict | None) -> list[str]:
     """The holding control's invasiveness per point (data/holding.py); with the control as
     a known input, also its force against the heave spring's (training/control.py)."""
-    rows = [r for r in d.get("point_records", []) if r.get("holding")]
-    if not rows:
+    points = d.get("point_records", [])
+    if not any(r.get("holding") for r in points):
         return []
     spring = (control or {}).get("against_heave_stiffness")
     L = ["### Holding control", "",
@@ -123,7 +123,7 @@ def _holding(d: dict, control: dict | None) -> list[str]:
          "relative to gains x response | target vs response | invasive |"
          + ("" if spring is None else " against the heave spring |"),
          "|---|---|---|---|---|---|---|" + ("" if spring is None else "---|")]
-    for k, r in enumerate(d.get("point_records", [])):
+    for k, r in enumerate(points):
         h = r.get("holding")
         if not h:
             continue
