@@ -166,8 +166,8 @@ def test_the_control_is_reported_against_the_heave_spring(fits):
 
 def test_the_spring_ratio_of_a_lee2020_record(tmp_path):
     """A lee2020-format record with a 4 mV control at the orbit's frequency: the ratio is
-    the gain times 4 mV over k_h times the heave's first-harmonic amplitude, exactly; a
-    record without a control has none."""
+    the gain times 4 mV over k_h times the heave's first-harmonic amplitude, exactly (the
+    gain's sign does not matter: a magnitude against a magnitude)."""
     write_lee(tmp_path / "CBC_v1.mat", control=4e-3)
     ds = load(tmp_path, "flutter")
     (ratio,) = against_heave_stiffness(ds, -2500.0, 3500.0)
