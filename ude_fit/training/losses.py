@@ -68,9 +68,18 @@ def _trajectory_error(model, data: TrainingData, sub: int):
     return jnp.mean(jax.vmap(one)(data.ys, data.period, data.drive))
 
 
-def periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
-    """Closed model orbits through the measured ones, with the measured stability."""
-    w_close, w_stab, margin = cfg.closure_weight, cfg.stability_weight, cfg.stability_margin
+class OrbitTerms(eqx.Module):
+    """Each orbit's parts of the periodic objective, one entry per orbit."""
+    fit: jax.Array          # mean square misfit of the samples over the state scales
+    closure: jax.Array      # end state against start state, squared, over the scales
+    indicator: jax.Array    # model.mech.stability_indicator: > 0 stable, < 0 unstable
+    prior: jax.Array        # the parameter offset's cost (0 where the parameter is exact)
+
+
+def orbit_terms(model, params, data: TrainingData, cfg: TrainConfig) -> OrbitTerms:
+    """Every orbit of ``data`` simulated from its unknowns in ``params`` (initial state,
+    period, parameter offset) over one period: how far it is from the measured orbit, how
+    far from closing, and how stable it is."""
     sub = cfg.substeps
     n = data.ys.shape[1]
     autonomous = model.mech.autonomous
@@ -78,26 +87,33 @@ def periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
     state_weight = (jnp.ones(data.ys.shape[::2]) if data.state_weight is None
                     else data.state_weight)
 
-    def one(ys, y0, T, drive, label, sw):
+    def one(ys, y0, T, drive, sw):
         if autonomous:
             # an imposed input (the holding control, when given) is periodic in the
             # orbit's own period, which is an unknown here
             drive = eqx.tree_at(lambda d: d.omega, drive, 2.0 * jnp.pi / T)
         yT, sim, M = _simulate_with_monodromy(model, y0, T, drive, n, sub)
-        s = model.mech.stability_indicator(M)
         fit = jnp.mean(((sim - ys) / data.y_scale) ** 2 * sw) / jnp.mean(sw)
         close = jnp.sum(((yT - y0) / data.y_scale) ** 2)
-        stab = jnp.where(label == 0, 0.0, jax.nn.relu(margin - label * s) ** 2)
-        return fit + w_close * close + w_stab * stab
+        return fit, close, model.mech.stability_indicator(M)
 
     y0 = data.ys[:, 0, :] + params["dy0"] * data.y_scale
     T = data.period * (1.0 + params["dT"]) if autonomous else data.period
-    drive, prior = data.drive, 0.0
+    drive, prior = data.drive, jnp.zeros(data.period.shape)
     if "dP" in params:            # errors in the measured parameters (.parameter_errors)
         errors = data.param_errors
         drive = eqx.tree_at(lambda d: d.param, drive, drive.param + errors.sigma * params["dP"])
         prior = errors.cost * params["dP"] ** 2
-    per = jax.vmap(one)(data.ys, y0, T, drive, data.label, state_weight) + prior
+    fit, close, indicator = jax.vmap(one)(data.ys, y0, T, drive, state_weight)
+    return OrbitTerms(fit, close, indicator, prior)
+
+
+def periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
+    """Closed model orbits through the measured ones, with the measured stability."""
+    t = orbit_terms(model, params, data, cfg)
+    stab = jnp.where(data.label == 0, 0.0,
+                     jax.nn.relu(cfg.stability_margin - data.label * t.indicator) ** 2)
+    per = t.fit + cfg.closure_weight * t.closure + cfg.stability_weight * stab + t.prior
     if data.weight is None:
         return jnp.mean(per)
     return jnp.sum(data.weight * per) / jnp.sum(data.weight)
