@@ -53,10 +53,12 @@ def _starts(fit_dir: str) -> list[tuple[int, str]]:
     return sorted(found)
 
 
-def label_margins(model, ds, steps: int) -> dict:
+def label_margins(model, ds, steps: int, margin: float | None = None) -> dict:
     """Every labelled orbit's indicator, closure and misfit once its unknowns are solved
-    against ``model`` with the training's objective."""
-    cfg = TrainConfig().for_system(model.system)
+    against ``model`` with the training's objective (at ``margin``, the fit's own where it
+    records one, else the default)."""
+    cfg = TrainConfig(**({} if margin is None else {"stability_margin": margin})
+                      ).for_system(model.system)
     data = augment(training_data(ds), model.mech)
     unknowns = orbit_unknowns(data, model.mech.autonomous)
     solved, loss = minimize(lambda p: periodic_objective(model, p, data, cfg), unknowns, (),
@@ -92,7 +94,8 @@ def main(argv=None) -> int:
         if ds is None:
             paths = [args.data] if args.data else header["sources"]
             ds = load(paths, model.system)
-        rec = label_margins(model, ds, args.steps)
+        margin = (header.get("options") or {}).get("train", {}).get("stability_margin")
+        rec = label_margins(model, ds, args.steps, margin)
         records.append({"start": k, "adequate": header.get("adequate"), **rec})
     print(json.dumps({"fit_dir": os.path.abspath(args.fit_dir), "steps": args.steps,
                       "data": args.data, "starts": records}, indent=1))

@@ -14,6 +14,7 @@ import pytest
 
 from tests.ude_fixtures import write_truth_campaign
 from ude_fit import EnergyRising, FitOptions, OrbitDataset, load
+from ude_fit.training.options import TrainConfig
 from ude_fit.cli import build_parser
 from ude_fit.cli import main as cli_main
 from ude_fit.cli import common as cli_common
@@ -38,7 +39,7 @@ NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory"
 # and monotone rounds and the amplitude stages (which --training trajectory above excludes)
 FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rounds", "2",
               "--constrain-unstable-branch", "--parameter-errors", "--branch-rounds", "3",
-              "--monotone-rounds", "4", "--amplitude-stages"]
+              "--monotone-rounds", "4", "--amplitude-stages", "--stability-margin", "0.05"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 # the guide orbits (periodic training of the network, without the rounds above)
 GUIDE_FLAGS = ["--guide-orbits", "10", "--guide-weight", "0.5", "--seed", "4"]
@@ -84,6 +85,18 @@ def test_the_fit_takes_its_own_flags():
     assert opts == FitOptions("flutter", control_input=True, control_gain=2.5,
                               mechanistic_effects=(("heave_unsteady_aero", None),
                                                    ("pitch_freeplay", 0.01)))
+
+
+def test_the_stability_margin_reaches_the_training(capsys):
+    parse = lambda *f: fit_options(build_parser().parse_args(
+        ["fit", "data.h5", "--system", "flutter", *f, "--out", "o"]))
+    assert parse("--stability-margin", "0.08").train.stability_margin == 0.08
+    assert parse().train.stability_margin == TrainConfig().stability_margin
+    for bad in ("0", "-0.1", "nan"):
+        with pytest.raises(SystemExit) as exit_:
+            parse("--stability-margin", bad)
+        assert exit_.value.code == 2
+        assert "--stability-margin must be" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("argv, message", [

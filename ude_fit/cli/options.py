@@ -136,6 +136,13 @@ def add_fit_arguments(p) -> None:
                    "from its Hopf point by one-harmonic balance, falls in airspeed all along "
                    "the unstable stretch the data shows: no supercritical Hopf point and no "
                    "S-bend between the unstable orbits; docs/fitting.md; off by default)")
+    p.add_argument("--stability-margin", type=positive_float("--stability-margin"),
+                   default=None, metavar="M",
+                   help="periodic training: how far beyond neutral a labelled orbit's "
+                   "stability indicator must lie on its labelled side before the stability "
+                   "term lets it be (default: the training's, in docs/fitting.md; "
+                   "benchmarks/label_margins.py shows how firmly a fit's starts hold each "
+                   "label; experimental)")
     p.add_argument("--parameter-errors", action="store_true",
                    help="aerofoil, periodic training, experimental: every orbit's airspeed "
                    "is an unknown too, off its measured value at a cost set by the data's own "
@@ -232,6 +239,8 @@ def fit_options(args):
                           constraint_rounds=args.constraint_rounds,
                           constrain_unstable_branch=args.constrain_unstable_branch,
                           parameter_errors=args.parameter_errors,
+                          **({} if args.stability_margin is None
+                             else {"stability_margin": args.stability_margin}),
                           branch_rounds=args.branch_rounds,
                           monotone_rounds=args.monotone_rounds,
                           amplitude_stages=args.amplitude_stages,
