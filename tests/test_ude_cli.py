@@ -39,7 +39,8 @@ NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory"
 # and monotone rounds and the amplitude stages (which --training trajectory above excludes)
 FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rounds", "2",
               "--constrain-unstable-branch", "--parameter-errors", "--branch-rounds", "3",
-              "--monotone-rounds", "4", "--amplitude-stages", "--stability-margin", "0.05"]
+              "--monotone-rounds", "4", "--amplitude-stages", "--stability-margin", "0.05",
+              "--backbone-margins"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 # the guide orbits (periodic training of the network, without the rounds above)
 GUIDE_FLAGS = ["--guide-orbits", "10", "--guide-weight", "0.5", "--seed", "4"]
@@ -97,6 +98,23 @@ def test_the_stability_margin_reaches_the_training(capsys):
             parse("--stability-margin", bad)
         assert exit_.value.code == 2
         assert "--stability-margin must be" in capsys.readouterr().err
+
+
+def test_backbone_margins_reach_the_training_of_a_self_excited_system(tmp_path, capsys):
+    parse = lambda *f: fit_options(build_parser().parse_args(
+        ["fit", "data.h5", *f, "--out", "o"]))
+    assert parse("--system", "flutter", "--backbone-margins").train.backbone_margins
+    assert not parse("--system", "flutter").train.backbone_margins
+    for argv, message in [(["--system", "oscillator"], "--backbone-margins applies to "
+                           "--system flutter with --training periodic only"),
+                          (["--system", "flutter", "--approximator", "gp"],
+                           "--backbone-margins apply to --approximator nn only")]:
+        out = tmp_path / "out"
+        rc = cli_main(["fit", "data.h5", *argv, "--backbone-margins", "--out", str(out),
+                       "--quiet"])
+        err = capsys.readouterr().err
+        assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
+        assert not out.exists()
 
 
 @pytest.mark.parametrize("argv, message", [

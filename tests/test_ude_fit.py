@@ -437,6 +437,32 @@ def test_diverged_start_is_dropped_not_kept(flutter_fit, monkeypatch):
     assert len(calls) == 2
 
 
+def test_backbone_margins_reach_the_training(flutter_fit, monkeypatch):
+    """--backbone-margins: the training sees each orbit's margin from the data's backbone
+    and the identified model (training.margins), the constant one without the option."""
+    from ude_fit.training.margins import backbone_margins
+    ds = load([flutter_fit["data"]], "flutter")
+    seen = []
+
+    class Reached(Exception):
+        pass
+
+    def capture(mech_model, data, *a, **kw):
+        seen.append((mech_model, data))
+        raise Reached
+
+    monkeypatch.setattr(fit_module, "_train_starts", capture)
+    for on in (True, False):
+        with pytest.raises(Reached):
+            fit(ds, FitOptions("flutter", mechanistic="equation",
+                               train=TrainConfig(backbone_margins=on)))
+    (mech_model, data), (_, plain) = seen
+    expected = backbone_margins(ds, mech_model, TrainConfig().stability_margin).values
+    assert np.sum(np.isfinite(expected)) >= 3
+    np.testing.assert_array_equal(np.asarray(data.margin), expected)
+    assert plain.margin is None
+
+
 def test_empty_dataset_is_an_error(flutter_fit):
     ds = load([flutter_fit["data"]], "flutter")
     with pytest.raises(DataError, match="empty"):

@@ -3,6 +3,8 @@ the aerofoil model's own limit cycles traced by the continuation: an exact orbit
 closes, and its stability indicator has the sign of the traced stability."""
 from __future__ import annotations
 
+import dataclasses
+
 import jax  # noqa: E402
 import jax.numpy as jnp
 import numpy as np
@@ -70,3 +72,19 @@ def test_the_objective_is_made_of_the_terms(traced):
                        + cfg.stability_weight * hinge)
     assert float(periodic_objective(model, params, wrong, cfg)) == pytest.approx(expected,
                                                                                 rel=1e-12)
+
+
+def test_each_orbit_is_held_at_its_own_margin(traced):
+    """With per-orbit margins (training.margins) the hinge of an orbit is measured from its
+    own margin; nan stands for the configured one."""
+    model, data, label = traced
+    cfg = TrainConfig(substeps=SUBSTEPS).for_system("flutter")
+    params = orbit_unknowns(data, True)
+    t = orbit_terms(model, params, data, cfg)
+    held = label * np.asarray(t.indicator)            # > 0: both on their labelled side
+    assert np.all(held > cfg.stability_margin)       # the constant margin costs nothing
+    own = dataclasses.replace(data, margin=jnp.asarray([2 * held[0], np.nan]))
+    plain = float(periodic_objective(model, params, data, cfg))
+    expected = plain + cfg.stability_weight * held[0] ** 2 / 2      # mean over 2 orbits
+    assert float(periodic_objective(model, params, own, cfg)) == pytest.approx(expected,
+                                                                              rel=1e-9)

@@ -43,6 +43,7 @@ from .training.control import (ControlInput, against_heave_stiffness, control_in
 from .training.guides import guide_orbits, with_guides
 from .training.identify import (INPUT_GAIN, TrainingData, augment, identify, residual_forces,
                                 training_data)
+from .training.margins import BackboneMargins, backbone_margins
 from .training.optimise import Diverged
 from .training.parameter_errors import parameter_errors
 from .training.options import FitOptions
@@ -124,6 +125,7 @@ class FitResult:
     fold_required: bool = False     # the data needs a fold (see adequacy.needs_fold)
     backbone: BackboneFit | None = None
     guides: dict | None = None      # the one-fold curve and guide orbits, if trained on
+    margins: BackboneMargins | None = None    # the data's stability margins, if trained on
     seconds: float = 0.0
 
     @property
@@ -177,6 +179,7 @@ class FitResult:
                        "records": [s.to_json() for s in self.starts]},
             "backbone": None if self.backbone is None else self.backbone.to_json(),
             "guides": self.guides,
+            "stability_margins": None if self.margins is None else self.margins.to_json(),
             "ranges": self.ranges,
             "seconds": self.seconds,
         }
@@ -385,6 +388,11 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
         ident = {"method": "given", "parameters": mech_model.mech.parameters(),
                  "std_error": {}}
     data = augment(data, mech_model.mech)
+    margins = None
+    if opts.train.backbone_margins:
+        margins = backbone_margins(ds, mech_model, opts.train.stability_margin)
+        if margins is not None:
+            data = dataclasses.replace(data, margin=jax.numpy.asarray(margins.values))
     if opts.train.parameter_errors:
         data = dataclasses.replace(data, param_errors=parameter_errors(data, ds))
     scales = np.asarray(data.y_scale)
@@ -451,7 +459,8 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                                "ude": None if best is None else best.diagram},
                      mechanistic_metrics=mech_m, scales=scales, ranges=ranges, starts=starts,
                      kept=best, data=data_record, fold_required=fold_needed,
-                     backbone=backbone, guides=guides, seconds=time.perf_counter() - t_start)
+                     backbone=backbone, guides=guides, margins=margins,
+                     seconds=time.perf_counter() - t_start)
 
 
 def _guided(ds: OrbitDataset, data: TrainingData, mech, opts: FitOptions):

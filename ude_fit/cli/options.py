@@ -143,6 +143,11 @@ def add_fit_arguments(p) -> None:
                    "term lets it be (default: the training's, in docs/fitting.md; "
                    "benchmarks/label_margins.py shows how firmly a fit's starts hold each "
                    "label; experimental)")
+    p.add_argument("--backbone-margins", action="store_true",
+                   help="aerofoil, periodic training, experimental: each labelled orbit's "
+                   "stability margin as the points' Hopf normal-form backbone predicts it, at "
+                   "one standard error towards neutral, never below --stability-margin "
+                   "(docs/fitting.md; off by default)")
     p.add_argument("--parameter-errors", action="store_true",
                    help="aerofoil, periodic training, experimental: every orbit's airspeed "
                    "is an unknown too, off its measured value at a cost set by the data's own "
@@ -239,6 +244,7 @@ def fit_options(args):
                           constraint_rounds=args.constraint_rounds,
                           constrain_unstable_branch=args.constrain_unstable_branch,
                           parameter_errors=args.parameter_errors,
+                          backbone_margins=args.backbone_margins,
                           **({} if args.stability_margin is None
                              else {"stability_margin": args.stability_margin}),
                           branch_rounds=args.branch_rounds,

@@ -79,4 +79,5 @@ def with_guides(data: TrainingData, guides: OrbitDataset, mech, weight: float) -
         # a guide sits where the one-fold curve puts it: its airspeed is exact
         None if data.param_errors is None else ParameterErrors(
             cat(data.param_errors.sigma, jnp.zeros(g.n_orbits)),
-            cat(data.param_errors.cost, jnp.zeros(g.n_orbits))))
+            cat(data.param_errors.cost, jnp.zeros(g.n_orbits))),
+        None if data.margin is None else cat(data.margin, jnp.full(g.n_orbits, jnp.nan)))

@@ -58,6 +58,9 @@ class TrainingData(eqx.Module):
     measured: int | None = eqx.field(static=True, default=None)
     # errors in the measured parameters (None: exact)
     param_errors: ParameterErrors | None = None
+    # (n_orbits,) each orbit's own stability margin (nan: the configured one; None: all
+    # the configured one; .margins)
+    margin: jax.Array | None = None
 
     @property
     def n_orbits(self) -> int:
@@ -74,7 +77,8 @@ class TrainingData(eqx.Module):
             slice(0, self.measured))
         return TrainingData(take(self.ys), take(self.qdd), take(self.period),
                             jax.tree_util.tree_map(take, self.drive), take(self.label),
-                            self.y_scale, self.amp_max, param_errors=errors)
+                            self.y_scale, self.amp_max, param_errors=errors,
+                            margin=None if self.margin is None else take(self.margin))
 
     def only(self, active) -> "TrainingData":
         """The orbits where ``active`` (a boolean mask) at weight 1, every other at weight 0
@@ -91,7 +95,8 @@ class TrainingData(eqx.Module):
                             self.y_scale, self.amp_max, jnp.asarray(active, float),
                             None if self.state_weight is None else take(self.state_weight),
                             self.measured,
-                            None if self.param_errors is None else self.param_errors.take(idx))
+                            None if self.param_errors is None else self.param_errors.take(idx),
+                            None if self.margin is None else take(self.margin))
 
 
 def training_data(ds, n: int = 32) -> TrainingData:
@@ -274,7 +279,7 @@ def augment(data: TrainingData, mech) -> TrainingData:
         raise ValueError("augment: the hidden states go in before any guide orbit")
     return TrainingData(jnp.asarray(ys2), data.qdd, data.period, data.drive, data.label,
                         jnp.asarray(y_scale), data.amp_max, data.weight,
-                        param_errors=data.param_errors)
+                        param_errors=data.param_errors, margin=data.margin)
 
 
 def residual_forces(model: UDE, data: TrainingData):

@@ -111,8 +111,11 @@ def orbit_terms(model, params, data: TrainingData, cfg: TrainConfig) -> OrbitTer
 def periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
     """Closed model orbits through the measured ones, with the measured stability."""
     t = orbit_terms(model, params, data, cfg)
+    margin = cfg.stability_margin
+    if data.margin is not None:     # the data's own, where it predicts one (.margins)
+        margin = jnp.where(jnp.isnan(data.margin), margin, data.margin)
     stab = jnp.where(data.label == 0, 0.0,
-                     jax.nn.relu(cfg.stability_margin - data.label * t.indicator) ** 2)
+                     jax.nn.relu(margin - data.label * t.indicator) ** 2)
     per = t.fit + cfg.closure_weight * t.closure + cfg.stability_weight * stab + t.prior
     if data.weight is None:
         return jnp.mean(per)

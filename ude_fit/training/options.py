@@ -88,6 +88,10 @@ class TrainConfig:
     # periodic training: every orbit's parameter an unknown too, with a prior whose scales
     # are the data's own scatter (training.parameter_errors; experimental, off by default)
     parameter_errors: bool = False
+    # periodic training: each labelled orbit's stability margin predicted by the points'
+    # Hopf normal-form backbone, stability_margin where it predicts none
+    # (training.margins; experimental, off by default)
+    backbone_margins: bool = False
 
     def __post_init__(self):
         for name in ("width", "depth"):
@@ -99,6 +103,9 @@ class TrainConfig:
         if not isinstance(self.constrain_unstable_branch, bool):
             raise ValueError("constrain_unstable_branch must be True or False, not "
                              f"{self.constrain_unstable_branch!r}")
+        if not isinstance(self.backbone_margins, bool):
+            raise ValueError("backbone_margins must be True or False, not "
+                             f"{self.backbone_margins!r}")
         if not isinstance(self.parameter_errors, bool):
             raise ValueError("parameter_errors must be True or False, not "
                              f"{self.parameter_errors!r}")
@@ -284,6 +291,10 @@ class FitOptions:
             raise ValueError("--parameter-errors applies to --system flutter with --training "
                              "periodic only (a self-excited system's parameter enters only "
                              "its vector field)")
+        if self.train.backbone_margins and (not system_kind(self.system).autonomous
+                                            or self.training != "periodic"):
+            raise ValueError("--backbone-margins applies to --system flutter with --training "
+                             "periodic only (a self-excited branch's Hopf normal form)")
         if not system_kind(self.system).autonomous and self.train.form == "amplitude":
             raise ValueError("--correction-form amplitude applies to --system flutter only "
                              "(a self-excited system's orbit sizes)")
@@ -351,6 +362,8 @@ class FitOptions:
                 nn_only.append("--amplitude-stages")
             if self.train.parameter_errors:
                 nn_only.append("--parameter-errors")
+            if self.train.backbone_margins:
+                nn_only.append("--backbone-margins")
             if self.train.param_scale != 1.0:
                 nn_only.append("--param-scale")
             if self.train.form != "network":

@@ -1,0 +1,96 @@
+"""Stability margins from the data (ude_fit.training.margins) against the rig's own truth: the
+Hopf normal-form backbone through the truth's orbits predicts how unstable each unstable
+orbit is no more than it is, and the periodic objective holds each orbit at its own margin."""
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from tests.ude_fixtures import DEFAULT_AIRSPEEDS, flutter_truth_orbits
+from ude_fit import UDE, flutter_qs
+from ude_fit.analysis.backbone import fit_backbone
+from ude_fit.data.load import load
+from ude_fit.training.margins import (_eigenvalues, backbone_margins, growth_rate_slope,
+                                      predict_margin)
+
+jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(scope="module")
+def truth():
+    recs = flutter_truth_orbits(DEFAULT_AIRSPEEDS)
+    V = np.array([r["parameter"] for r in recs])
+    A = np.array([r["amplitude"] for r in recs])
+    return recs, fit_backbone(V, A, [r["stable"] for r in recs])
+
+
+def _prediction(model, backbone, rec, m):
+    lam = _eigenvalues(model, rec["parameter"])
+    return predict_margin(backbone, m, rec["amplitude"], rec["period"], rec["stable"],
+                          lam[np.argsort(np.real(lam))[:-2]])
+
+
+def test_the_unstable_orbits_are_predicted_no_more_unstable_than_the_truth(truth):
+    """An unstable orbit's largest Floquet multiplier is its amplitude's: the prediction's
+    amplitude factor 1 - exp(lambda T) lies between 0 and the truth's 1 - mu (the rig has
+    unsteady aerodynamics the quasi-steady model used for m lacks)."""
+    recs, backbone = truth
+    model = UDE(flutter_qs())
+    m = growth_rate_slope(model, backbone.hopf)
+    assert m > 0                  # the aerofoil's equilibrium loses stability as V rises
+    unstable = [r for r in recs if not r["stable"]]
+    assert len(unstable) >= 3
+    for r in unstable:
+        p = _prediction(model, backbone, r, m)
+        assert p.exponent_T is not None and p.exponent_T > 0
+        factor = 1 - np.exp(p.exponent_T)
+        assert 1 - r["floquet_max"] < factor < 0
+        assert p.margin == pytest.approx(abs(factor * p.others))
+
+
+def test_a_label_the_backbone_disagrees_with_gets_no_prediction(truth):
+    recs, backbone = truth
+    model = UDE(flutter_qs())
+    m = growth_rate_slope(model, backbone.hopf)
+    r = next(r for r in recs if not r["stable"])
+    flipped = {**r, "stable": True}
+    assert _prediction(model, backbone, flipped, m).margin is None
+    # the opposite growth-rate sign makes every label disagree
+    assert _prediction(model, backbone, r, -m).margin is None
+
+
+def test_the_dataset_margins_never_fall_below_the_floor(tmp_path, truth):
+    """On a campaign file of the truth's orbits: every labelled orbit's margin is predicted
+    or nan, and none is below the floor; a floor above every prediction is every margin."""
+    from tests.ude_fixtures import write_truth_campaign
+    path = tmp_path / "truth.h5"
+    write_truth_campaign(path, "flutter")
+    ds = load(path, system="flutter")
+    model = UDE(flutter_qs())
+    margins = backbone_margins(ds, model, floor=0.02)
+    v = margins.values
+    assert v.shape == (len(ds),)
+    assert np.all(np.isnan(v) | (v >= 0.02))
+    assert np.sum(np.isfinite(v)) >= len(ds) - 2       # at most the orbits by the fold
+    high = backbone_margins(ds, model, floor=5.0).values
+    assert np.all(np.isnan(high) | (high == 5.0))
+    assert margins.to_json()["points"][0].keys() == {"exponent_T", "others", "margin"}
+
+
+def test_a_stage_keeps_the_margins_of_its_orbits(tmp_path):
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from tests.ude_fixtures import write_truth_campaign
+    from ude_fit.training.identify import training_data
+    path = tmp_path / "truth.h5"
+    write_truth_campaign(path, "flutter")
+    data = training_data(load(path, system="flutter"))
+    margins = np.linspace(0.02, 0.5, data.n_orbits)
+    data = dataclasses.replace(data, margin=jnp.asarray(margins))
+    mask = np.arange(data.n_orbits) % 2 == 1
+    idx = np.where(mask, np.arange(data.n_orbits), np.flatnonzero(mask)[0])
+    np.testing.assert_array_equal(np.asarray(data.only(mask).margin), margins[idx])
+    np.testing.assert_array_equal(np.asarray(data.measurements().margin), margins)
