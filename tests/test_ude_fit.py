@@ -439,8 +439,8 @@ def test_diverged_start_is_dropped_not_kept(flutter_fit, monkeypatch):
 
 def test_backbone_margins_reach_the_training(flutter_fit, monkeypatch):
     """--backbone-margins: the training sees each orbit's margin from the data's backbone
-    and the identified model (training.margins), the constant one without the option."""
-    from ude_fit.training.margins import backbone_margins
+    and the identified model (analysis.margins), the constant one without the option."""
+    from ude_fit.analysis.margins import backbone_margins
     ds = load([flutter_fit["data"]], "flutter")
     seen = []
 

@@ -1,4 +1,4 @@
-"""Stability margins from the data (ude_fit.training.margins) against the rig's own truth: the
+"""Stability margins from the data (ude_fit.analysis.margins) against the rig's own truth: the
 Hopf normal-form backbone through the truth's orbits predicts how unstable each unstable
 orbit is no more than it is, and the periodic objective holds each orbit at its own margin."""
 from __future__ import annotations
@@ -11,7 +11,7 @@ from tests.ude_fixtures import DEFAULT_AIRSPEEDS, flutter_truth_orbits
 from ude_fit import UDE, flutter_qs
 from ude_fit.analysis.backbone import fit_backbone
 from ude_fit.data.load import load
-from ude_fit.training.margins import (_eigenvalues, backbone_margins, growth_rate_slope,
+from ude_fit.analysis.margins import (_eigenvalues, backbone_margins, growth_rate_slope,
                                       predict_margin)
 
 jax.config.update("jax_enable_x64", True)

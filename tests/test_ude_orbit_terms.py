@@ -75,7 +75,7 @@ def test_the_objective_is_made_of_the_terms(traced):
 
 
 def test_each_orbit_is_held_at_its_own_margin(traced):
-    """With per-orbit margins (training.margins) the hinge of an orbit is measured from its
+    """With per-orbit margins (analysis.margins) the hinge of an orbit is measured from its
     own margin; nan stands for the configured one."""
     model, data, label = traced
     cfg = TrainConfig(substeps=SUBSTEPS).for_system("flutter")

@@ -28,6 +28,7 @@ from .analysis.adequacy import error_bar, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
 from .analysis.metrics import fold_points
 from .analysis.criticality import HopfCriticality, hopf_criticality
+from .analysis.margins import BackboneMargins, backbone_margins
 from .analysis.metrics_type import ModelMetrics
 from .data.estimates import (data_scatter, estimate_from_data, parameter_scatter,
                              unstable_amplitude_line)
@@ -43,7 +44,6 @@ from .training.control import (ControlInput, against_heave_stiffness, control_in
 from .training.guides import guide_orbits, with_guides
 from .training.identify import (INPUT_GAIN, TrainingData, augment, identify, residual_forces,
                                 training_data)
-from .training.margins import BackboneMargins, backbone_margins
 from .training.optimise import Diverged
 from .training.parameter_errors import parameter_errors
 from .training.options import FitOptions

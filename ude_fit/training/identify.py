@@ -59,7 +59,7 @@ class TrainingData(eqx.Module):
     # errors in the measured parameters (None: exact)
     param_errors: ParameterErrors | None = None
     # (n_orbits,) each orbit's own stability margin (nan: the configured one; None: all
-    # the configured one; .margins)
+    # the configured one; ude_fit.analysis.margins)
     margin: jax.Array | None = None
 
     @property

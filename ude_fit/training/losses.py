@@ -112,7 +112,7 @@ def periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
     """Closed model orbits through the measured ones, with the measured stability."""
     t = orbit_terms(model, params, data, cfg)
     margin = cfg.stability_margin
-    if data.margin is not None:     # the data's own, where it predicts one (.margins)
+    if data.margin is not None:     # the data's own (analysis.margins)
         margin = jnp.where(jnp.isnan(data.margin), margin, data.margin)
     stab = jnp.where(data.label == 0, 0.0,
                      jax.nn.relu(margin - data.label * t.indicator) ** 2)

@@ -90,7 +90,7 @@ class TrainConfig:
     parameter_errors: bool = False
     # periodic training: each labelled orbit's stability margin predicted by the points'
     # Hopf normal-form backbone, stability_margin where it predicts none
-    # (training.margins; experimental, off by default)
+    # (analysis.margins; experimental, off by default)
     backbone_margins: bool = False
 
     def __post_init__(self):

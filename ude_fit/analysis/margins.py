@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from ..analysis.backbone import HopfBackbone, backbone_of
+from .backbone import HopfBackbone, backbone_of
 from ..data.orbit import OrbitDataset
 from ..models.equilibria import _equilibrium_scan
 
