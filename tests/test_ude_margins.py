@@ -94,3 +94,20 @@ def test_a_stage_keeps_the_margins_of_its_orbits(tmp_path):
     idx = np.where(mask, np.arange(data.n_orbits), np.flatnonzero(mask)[0])
     np.testing.assert_array_equal(np.asarray(data.only(mask).margin), margins[idx])
     np.testing.assert_array_equal(np.asarray(data.measurements().margin), margins)
+
+
+def test_the_report_lists_each_labelled_points_margin(tmp_path):
+    from tests.ude_fixtures import write_truth_campaign
+    from ude_fit.report.markdown import _margins
+    path = tmp_path / "truth.h5"
+    write_truth_campaign(path, "flutter")
+    ds = load(path, system="flutter")
+    margins = backbone_margins(ds, UDE(flutter_qs()), floor=0.02)
+    text = " ".join(_margins(margins.to_json(), ds.point_records(), "m/s"))
+    shown = [p for p in margins.points if p.margin is not None]
+    assert text.count("(constant)") == len(ds) - len(shown)
+    for o, p in zip(ds, margins.points):
+        if p.margin is not None:
+            assert (f"{o.parameter:.2f} m/s {'stable' if o.stable else 'unstable'} "
+                    f"{max(p.margin, 0.02):.3f}") in text
+    assert _margins(None, [], "m/s") == []

@@ -40,6 +40,25 @@ def _guides(g: dict | None, unit: str) -> list[str]:
             "is against the measured points."]
 
 
+def _margins(sm: dict | None, points: list[dict], unit: str) -> list[str]:
+    """The stability margins the UDE trained with, if from the backbone
+    (ude_fit.analysis.margins): each labelled point's, or the constant where none."""
+    if not sm:
+        return []
+    cells = []
+    for p, m in zip(points, sm["points"]):
+        if p.get("stable") is None:
+            continue
+        value = (f"{max(m['margin'], sm['floor']):.3f}" if m["margin"] is not None
+                 else f"{sm['floor']:g} (constant)")
+        cells.append(f"{p['parameter']:.2f} {unit} {'stable' if p['stable'] else 'unstable'}"
+                     f" {value}")
+    return ["", "Stability margins (`--backbone-margins`: each labelled orbit's indicator as "
+            "the backbone predicts it, with the mechanistic model's growth-rate slope "
+            f"{sm['growth_rate_slope']:.4g} /s per {unit}, one standard error towards neutral): "
+            + "; ".join(cells) + "."]
+
+
 def _fold_cell(m: dict) -> str:
     """A start's fold count and, for a self-excited diagram, where each fold is
     (parameter @ amplitude in mm; "isola" for one on a closed branch of its own)."""
@@ -178,6 +197,8 @@ def render(metrics: dict, figures: dict) -> str:
                             if mm.get("isola_folds") else "") + ".")
         L += _backbone(metrics.get("backbone"), unit)
         L += _guides(metrics.get("guides"), unit)
+        L += _margins(metrics.get("stability_margins"),
+                      metrics.get("data", {}).get("point_records", []), unit)
     else:
         L += ["", "### Per forcing frequency", "",
               "| frequency (Hz) | mechanistic RMS | UDE RMS | mechanistic max | UDE max | "
