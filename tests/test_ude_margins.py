@@ -75,7 +75,9 @@ def test_the_dataset_margins_never_fall_below_the_floor(tmp_path, truth):
     assert np.sum(np.isfinite(v)) >= len(ds) - 2       # at most the orbits by the fold
     high = backbone_margins(ds, model, floor=5.0).values
     assert np.all(np.isnan(high) | (high == 5.0))
-    assert margins.to_json()["points"][0].keys() == {"exponent_T", "others", "margin"}
+    points = margins.to_json()["points"]
+    assert points[0].keys() == {"exponent_T", "others", "margin", "used"}
+    assert [p["used"] for p in points] == [None if np.isnan(x) else x for x in v]
 
 
 def test_a_stage_keeps_the_margins_of_its_orbits(tmp_path):

@@ -71,8 +71,10 @@ class BackboneMargins:
     def to_json(self) -> dict:
         return {"source": "Hopf normal-form backbone, one standard error towards neutral",
                 "growth_rate_slope": self.growth_rate_slope, "floor": self.floor,
+                # margin: the prediction; used: what the training asked (null: the floor)
                 "points": [{"exponent_T": p.exponent_T, "others": p.others,
-                            "margin": p.margin} for p in self.points]}
+                            "margin": p.margin, "used": None if np.isnan(v) else float(v)}
+                           for p, v in zip(self.points, self.values)]}
 
 
 def predict_margin(backbone: HopfBackbone, m: float, amplitude: float, period: float,

@@ -49,7 +49,7 @@ def _margins(sm: dict | None, points: list[dict], unit: str) -> list[str]:
     for p, m in zip(points, sm["points"]):
         if p.get("stable") is None:
             continue
-        value = (f"{max(m['margin'], sm['floor']):.3f}" if m["margin"] is not None
+        value = (f"{m['used']:.3f}" if m["used"] is not None
                  else f"{sm['floor']:g} (constant)")
         cells.append(f"{p['parameter']:.2f} {unit} {'stable' if p['stable'] else 'unstable'}"
                      f" {value}")
