@@ -16,12 +16,15 @@ from the measured orbits (Adam, then L-BFGS, as the training runs).
     python3 benchmarks/label_margins.py FIT_DIR [--data DIR] [--steps 200]
 
 FIT_DIR is an ``ude-fit fit --out`` folder of an aerofoil fit; its ``starts/start_K.eqx``
-are read (every start's model). --data defaults to the data the fit records.
+are read (every start's model). --data defaults to the data the fit records. A fit with
+``--backbone-margins`` is re-solved at the margins its metrics.json records for each orbit,
+and ``in_margins`` is in units of each orbit's own margin.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import glob
 import json
 import os
@@ -53,28 +56,52 @@ def _starts(fit_dir: str) -> list[tuple[int, str]]:
     return sorted(found)
 
 
-def label_margins(model, ds, steps: int, margin: float | None = None) -> dict:
+def label_margins(model, ds, steps: int, margin: float | None = None,
+                  orbit_margins=None) -> dict:
     """Every labelled orbit's indicator, closure and misfit once its unknowns are solved
     against ``model`` with the training's objective (at ``margin``, the fit's own where it
-    records one, else the default)."""
+    records one, else the default; at ``orbit_margins``, one per orbit with None for the
+    constant one, where the fit took them from the backbone)."""
     cfg = TrainConfig(**({} if margin is None else {"stability_margin": margin})
                       ).for_system(model.system)
     data = augment(training_data(ds), model.mech)
+    own = np.full(len(ds.orbits), cfg.stability_margin)
+    if orbit_margins is not None:
+        used = np.array([np.nan if m is None else m for m in orbit_margins], dtype=float)
+        data = dataclasses.replace(data, margin=jax.numpy.asarray(used))
+        own = np.where(np.isnan(used), cfg.stability_margin, used)
     unknowns = orbit_unknowns(data, model.mech.autonomous)
     solved, loss = minimize(lambda p: periodic_objective(model, p, data, cfg), unknowns, (),
                             adam_steps=steps, lbfgs_steps=steps, lr=cfg.learning_rate)
     t = orbit_terms(model, solved, data, cfg)
     label = np.asarray(data.label)
     ind = np.asarray(t.indicator)
-    # how far beyond the margin on its labelled side: 1 at the hinge, < 1 inside it
-    held = np.where(label == 0, np.nan, label * ind / cfg.stability_margin)
+    # how far beyond its own margin on its labelled side: 1 at the hinge, < 1 inside it
+    held = np.where(label == 0, np.nan, label * ind / own)
     return {"objective": loss, "margin": cfg.stability_margin,
             "points": [{"parameter": float(o.parameter), "amplitude_mm": 1e3 * o.amplitude,
-                        "stable": o.stable, "indicator": float(i),
+                        "stable": o.stable, "indicator": float(i), "margin": float(m),
                         "in_margins": None if np.isnan(h) else float(h),
                         "closure": float(c), "misfit": float(f)}
-                       for o, i, h, c, f in zip(ds.orbits, ind, held, np.asarray(t.closure),
-                                                np.asarray(t.fit))]}
+                       for o, i, m, h, c, f in zip(ds.orbits, ind, own, held,
+                                                   np.asarray(t.closure), np.asarray(t.fit))]}
+
+
+def _orbit_margins(fit_dir: str):
+    """The per-orbit margins the fit trained at (metrics.json's ``stability_margins``), or
+    None where it used the constant one."""
+    try:
+        with open(os.path.join(fit_dir, "metrics.json")) as f:
+            recorded = json.load(f).get("stability_margins")
+    except (OSError, ValueError):
+        return None
+    if not recorded:
+        return None
+    # files written before the ``used`` field: the prediction, never below the floor
+    floor = recorded["floor"]
+    return [p["used"] if "used" in p else (None if p["margin"] is None
+                                            else max(p["margin"], floor))
+            for p in recorded["points"]]
 
 
 def main(argv=None) -> int:
@@ -89,13 +116,14 @@ def main(argv=None) -> int:
         sys.exit(f"label_margins: no starts/start_K.eqx under {args.fit_dir}")
     records = []
     ds = None
+    orbit_margins = _orbit_margins(args.fit_dir)
     for k, path in starts:
         model, header = load_model(path)
         if ds is None:
             paths = [args.data] if args.data else header["sources"]
             ds = load(paths, model.system)
         margin = (header.get("options") or {}).get("train", {}).get("stability_margin")
-        rec = label_margins(model, ds, args.steps, margin)
+        rec = label_margins(model, ds, args.steps, margin, orbit_margins)
         records.append({"start": k, "adequate": header.get("adequate"), **rec})
     print(json.dumps({"fit_dir": os.path.abspath(args.fit_dir), "steps": args.steps,
                       "data": args.data, "starts": records}, indent=1))

@@ -11,8 +11,8 @@ from tests.ude_fixtures import DEFAULT_AIRSPEEDS, flutter_truth_orbits
 from ude_fit import UDE, flutter_qs
 from ude_fit.analysis.backbone import fit_backbone
 from ude_fit.data.load import load
-from ude_fit.analysis.margins import (_eigenvalues, backbone_margins, growth_rate_slope,
-                                      predict_margin)
+from ude_fit.analysis.criticality import equilibrium_eigenvalues, growth_rate_slope
+from ude_fit.analysis.margins import SLOPE_STEP, backbone_margins, predict_margin
 
 jax.config.update("jax_enable_x64", True)
 
@@ -26,7 +26,7 @@ def truth():
 
 
 def _prediction(model, backbone, rec, m):
-    lam = _eigenvalues(model, rec["parameter"])
+    lam = equilibrium_eigenvalues(model, rec["parameter"])
     return predict_margin(backbone, m, rec["amplitude"], rec["period"], rec["stable"],
                           lam[np.argsort(np.real(lam))[:-2]])
 
@@ -37,7 +37,7 @@ def test_the_unstable_orbits_are_predicted_no_more_unstable_than_the_truth(truth
     unsteady aerodynamics the quasi-steady model used for m lacks)."""
     recs, backbone = truth
     model = UDE(flutter_qs())
-    m = growth_rate_slope(model, backbone.hopf)
+    m = growth_rate_slope(model, backbone.hopf, SLOPE_STEP)
     assert m > 0                  # the aerofoil's equilibrium loses stability as V rises
     unstable = [r for r in recs if not r["stable"]]
     assert len(unstable) >= 3
@@ -52,7 +52,7 @@ def test_the_unstable_orbits_are_predicted_no_more_unstable_than_the_truth(truth
 def test_a_label_the_backbone_disagrees_with_gets_no_prediction(truth):
     recs, backbone = truth
     model = UDE(flutter_qs())
-    m = growth_rate_slope(model, backbone.hopf)
+    m = growth_rate_slope(model, backbone.hopf, SLOPE_STEP)
     r = next(r for r in recs if not r["stable"])
     flipped = {**r, "stable": True}
     assert _prediction(model, backbone, flipped, m).margin is None

@@ -101,6 +101,19 @@ def first_lyapunov(model: UDE, V_H: float, y_eq, omega: float) -> tuple[float, n
     return float(0.5 * np.real(t1 - 2 * t2 + t3)), q
 
 
+def equilibrium_eigenvalues(model, V: float) -> np.ndarray:
+    """The linearisation's eigenvalues at rest at the parameter value ``V``."""
+    _, lam, _ = _equilibrium_scan(model, jnp.asarray([float(V)]), jnp.zeros(model.n_state))
+    return np.asarray(lam).ravel()
+
+
+def growth_rate_slope(model, V: float, dv: float) -> float:
+    """mu'(V): the central difference over ±``dv`` of the largest real part of the
+    linearisation's eigenvalues at rest."""
+    growth = lambda v: float(np.max(np.real(equilibrium_eigenvalues(model, v))))
+    return (growth(V + dv) - growth(V - dv)) / (2 * dv)
+
+
 def hopf_criticality(model: UDE, v_range, dv: float = 1e-4) -> HopfCriticality | None:
     """The criticality of ``model``'s first Hopf point in ``v_range`` (None without one, or
     where the point is degenerate).
@@ -113,9 +126,6 @@ def hopf_criticality(model: UDE, v_range, dv: float = 1e-4) -> HopfCriticality |
     except np.linalg.LinAlgError:
         return None         # a zero eigenvalue as well: a degenerate point, no normal form
 
-    def growth(V):
-        _, lam, _ = _equilibrium_scan(model, jnp.asarray([V]), jnp.zeros(model.n_state))
-        return float(jnp.max(jnp.real(lam)))
-    mu_dash = (growth(h["param"] + dv) - growth(h["param"] - dv)) / (2 * dv)
+    mu_dash = growth_rate_slope(model, h["param"], dv)
     slope = -4.0 * abs(q[0]) ** 2 * mu_dash / re_c1 if re_c1 != 0 else float("nan")
     return HopfCriticality(h["param"], re_c1, float(mu_dash), float(slope))

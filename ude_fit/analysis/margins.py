@@ -29,24 +29,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import jax.numpy as jnp
 import numpy as np
 
 from .backbone import HopfBackbone, backbone_of
+from .criticality import equilibrium_eigenvalues, growth_rate_slope
 from ..data.orbit import OrbitDataset
-from ..models.equilibria import _equilibrium_scan
 
 
-def _eigenvalues(model, V: float) -> np.ndarray:
-    """The linearisation's eigenvalues at rest at airspeed ``V``."""
-    _, lam, _ = _equilibrium_scan(model, jnp.asarray([float(V)]), jnp.zeros(model.n_state))
-    return np.asarray(lam).ravel()
-
-
-def growth_rate_slope(model, V: float, dv: float = 1e-3) -> float:
-    """d/dV of the largest real part of the linearisation's eigenvalues at ``V``."""
-    crit = lambda v: float(np.max(np.real(_eigenvalues(model, v))))
-    return (crit(V + dv) - crit(V - dv)) / (2 * dv)
+# the airspeed step (m/s) of the growth-rate slope's central difference
+SLOPE_STEP = 1e-3
 
 
 @dataclass(frozen=True)
@@ -101,7 +92,7 @@ def backbone_margins(ds: OrbitDataset, mech_model, floor: float) -> BackboneMarg
     backbone = backbone_of(ds)
     if backbone is None:
         return None
-    m = growth_rate_slope(mech_model, backbone.hopf)
+    m = growth_rate_slope(mech_model, backbone.hopf, SLOPE_STEP)
     if not np.isfinite(m) or m * backbone.m_sign <= 0:
         return None
     points = []
@@ -109,7 +100,7 @@ def backbone_margins(ds: OrbitDataset, mech_model, floor: float) -> BackboneMarg
         if o.stable is None or not o.amplitude > 0:
             points.append(PredictedMargin(None, None, None))
             continue
-        lam = _eigenvalues(mech_model, o.parameter)
+        lam = equilibrium_eigenvalues(mech_model, o.parameter)
         others = lam[np.argsort(np.real(lam))[:-2]]
         points.append(predict_margin(backbone, m, o.amplitude, 1.0 / o.frequency,
                                      o.stable, others))
