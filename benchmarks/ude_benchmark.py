@@ -207,6 +207,17 @@ def _compile_cache(path: str, truth: dict) -> dict:
             "same_result": runs[0]["ude"] == runs[1]["ude"], "ude": runs[1]["ude"]}
 
 
+def _median_ms(step, args, repeats: int) -> float:
+    """Milliseconds of ``step(*args)``, median of ``repeats`` after one call to compile."""
+    jax.block_until_ready(step(*args))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(step(*args))
+        times.append(time.perf_counter() - t0)
+    return round(1000 * statistics.median(times), 2)
+
+
 def _periodic_step(path: str, repeats: int = 20) -> dict:
     """Milliseconds of one periodic training step (value and gradient, the default 2x12
     network, median of ``repeats`` after compiling), the plain network against the rest-free
@@ -229,14 +240,16 @@ def _periodic_step(path: str, repeats: int = 20) -> dict:
         params = {"corr": trained, "dy0": jnp.zeros(data.ys[:, 0, :].shape),
                   "dT": jnp.zeros(data.period.shape)}
         step = eqx.filter_jit(jax.value_and_grad(periodic_loss))
-        jax.block_until_ready(step(params, static, mech, data, cfg, None))
-        times = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            jax.block_until_ready(step(params, static, mech, data, cfg, None))
-            times.append(time.perf_counter() - t0)
-        out[f"{name}_ms"] = round(1000 * statistics.median(times), 2)
+        out[f"{name}_ms"] = _median_ms(step, (params, static, mech, data, cfg, None), repeats)
     out["ratio"] = round(out["rest_free_ms"] / out["plain_ms"], 3)
+    # the rest-free step at fewer RK4 steps between samples (the default is the system's):
+    # the step's cost is about linear in them; what they cost in accuracy is in
+    # docs/experiments.md (thirty-fifth session)
+    for substeps in (1, 2):
+        cfg = TrainConfig(substeps=substeps).for_system("flutter")
+        out[f"rest_free_substeps_{substeps}_ms"] = _median_ms(
+            step, (params, static, mech, data, cfg, None), repeats)
+    out["default_substeps"] = TrainConfig().for_system("flutter").substeps
     return out
 
 

@@ -34,7 +34,7 @@ NN_FLAGS = ["--mechanistic-params", str(PARAMS_TOML), "--training", "trajectory"
             "--equilibrium-penalty", "4.5", "--smoothness-penalty", "5.5",
             "--weight-decay", "6.5", "--param-scale", "2", "--param-dependence", "polynomial",
             "--param-degree", "3", "--reference-hopf", "24.1", "--reference-fold", "20.4",
-            "--no-rest-free", "--starts-together"]
+            "--no-rest-free", "--starts-together", "--from-mechanistic"]
 # the amplitude form of the correction (no network options with it), the constraint, branch
 # and monotone rounds and the amplitude stages (which --training trajectory above excludes)
 FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rounds", "2",
@@ -115,6 +115,19 @@ def test_backbone_margins_reach_the_training_of_a_self_excited_system(tmp_path, 
         err = capsys.readouterr().err
         assert rc == 2 and message in err and len(err.strip().splitlines()) == 1, err
         assert not out.exists()
+
+
+def test_a_start_from_the_mechanistic_model_is_a_network_option(tmp_path, capsys):
+    parse = lambda *f: fit_options(build_parser().parse_args(
+        ["fit", "data.h5", "--system", "flutter", *f, "--out", "o"]))
+    assert parse("--from-mechanistic").train.from_mechanistic
+    assert not parse().train.from_mechanistic
+    out = tmp_path / "out"
+    rc = cli_main(["fit", "data.h5", "--system", "flutter", "--approximator", "gp",
+                   "--from-mechanistic", "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--from-mechanistic" in err and "--approximator nn only" in err, err
+    assert len(err.strip().splitlines()) == 1 and not out.exists()
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -7,10 +7,10 @@ explicit linear terms', not the network's extrapolation to rest) and held by con
 rounds to the energy-rising and rest-stability conditions, with no weight set by hand; a
 start whose diagram still folds more than once gets guide rounds (docs/fitting.md). On
 these few, scattered points that puts every point on the model's branches with its
-stability; the guide rounds take the extra folds away in most starts that have them (4, 4
-and 3 of 5 adequate on seeds 0, 1 and 2), so the issue's 80 % adequate starts holds on two
-seeds of three, and the kept start's Hopf point is within 0.5 m/s of the data's estimate
-with five starts but not with these two (the strict xfail below).
+stability; the guide rounds take the extra folds away in many starts that have them (3, 4,
+3, 2 and 1 of 5 adequate on seeds 0-4, docs/benchmarks.md), so the issue's 80 % adequate
+starts holds on one seed of five, and the kept start's Hopf point is within 0.5 m/s of the
+data's estimate with five starts but not with these two (the strict xfail below).
 """
 
 from __future__ import annotations

@@ -148,6 +148,11 @@ def add_fit_arguments(p) -> None:
                    "stability margin as the points' Hopf normal-form backbone predicts it, at "
                    "one standard error towards neutral, never below --stability-margin "
                    "(docs/fitting.md; off by default)")
+    p.add_argument("--from-mechanistic", action="store_true",
+                   help="network, experimental: no equation stage; each start's first "
+                   "training begins at the mechanistic model and takes the longer step "
+                   "counts it needs to learn the whole correction (docs/fitting.md; off by "
+                   "default)")
     p.add_argument("--parameter-errors", action="store_true",
                    help="aerofoil, periodic training, experimental: every orbit's airspeed "
                    "is an unknown too, off its measured value at a cost set by the data's own "
@@ -245,6 +250,7 @@ def fit_options(args):
                           constrain_unstable_branch=args.constrain_unstable_branch,
                           parameter_errors=args.parameter_errors,
                           backbone_margins=args.backbone_margins,
+                          from_mechanistic=args.from_mechanistic,
                           **({} if args.stability_margin is None
                              else {"stability_margin": args.stability_margin}),
                           branch_rounds=args.branch_rounds,

@@ -92,6 +92,14 @@ class TrainConfig:
     # Hopf normal-form backbone, stability_margin where it predicts none
     # (analysis.margins; experimental, off by default)
     backbone_margins: bool = False
+    # no equation stage: each start's first training (periodic or trajectory) begins at the
+    # mechanistic model (the fresh network's last layer is small) and takes
+    # start_adam_steps and start_lbfgs_steps, as it has the whole correction to learn; the
+    # rounds after it keep adam_steps and lbfgs_steps (experimental, off by default:
+    # docs/experiments.md, thirty-fifth session)
+    from_mechanistic: bool = False
+    start_adam_steps: int = 3000
+    start_lbfgs_steps: int = 600
 
     def __post_init__(self):
         for name in ("width", "depth"):
@@ -106,6 +114,11 @@ class TrainConfig:
         if not isinstance(self.backbone_margins, bool):
             raise ValueError("backbone_margins must be True or False, not "
                              f"{self.backbone_margins!r}")
+        if not isinstance(self.from_mechanistic, bool):
+            raise ValueError("from_mechanistic must be True or False, not "
+                             f"{self.from_mechanistic!r}")
+        _check_int("start_adam_steps", self.start_adam_steps, 0)
+        _check_int("start_lbfgs_steps", self.start_lbfgs_steps, 0)
         if not isinstance(self.parameter_errors, bool):
             raise ValueError("parameter_errors must be True or False, not "
                              f"{self.parameter_errors!r}")
@@ -364,6 +377,8 @@ class FitOptions:
                 nn_only.append("--parameter-errors")
             if self.train.backbone_margins:
                 nn_only.append("--backbone-margins")
+            if self.train.from_mechanistic:
+                nn_only.append("--from-mechanistic")
             if self.train.param_scale != 1.0:
                 nn_only.append("--param-scale")
             if self.train.form != "network":

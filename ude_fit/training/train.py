@@ -222,19 +222,25 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
     mech = model.mech
     Z, R = residual_forces(UDE(mech), measured)
     reg = regularity_points(measured) if cfg.needs_points() else None
+    skip_equation = cfg.form == "amplitude" or cfg.from_mechanistic
+    # the first training's steps: from the mechanistic model it has the whole correction to
+    # learn
+    adam_steps, lbfgs_steps = ((cfg.start_adam_steps, cfg.start_lbfgs_steps)
+                               if cfg.from_mechanistic else (cfg.adam_steps, cfg.lbfgs_steps))
     params, eq_loss, failed = descend(
         equation_loss, params, (static, mech, jnp.asarray(Z), jnp.asarray(R), cfg.penalties,
                                 reg),
         lanes=lanes,
-        # the amplitude form starts from the orbits' energy balance instead
-        adam_steps=0 if cfg.form == "amplitude" else cfg.equation_steps,
-        lbfgs_steps=0 if cfg.form == "amplitude" else cfg.equation_lbfgs_steps,
+        # the amplitude form starts from the orbits' energy balance instead, and
+        # from_mechanistic from the mechanistic model
+        adam_steps=0 if skip_equation else cfg.equation_steps,
+        lbfgs_steps=0 if skip_equation else cfg.equation_lbfgs_steps,
         lr=1e-2, progress=progress, stage="equation")
     loss = eq_loss
     if training == "trajectory":
         params, loss, failed = descend(
             trajectory_loss, params, (static, mech, data, cfg.substeps, cfg.penalties, reg),
-            lanes=lanes, adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps,
+            lanes=lanes, adam_steps=adam_steps, lbfgs_steps=lbfgs_steps,
             lr=cfg.learning_rate, failed=failed, progress=progress, stage="trajectory")
     elif training == "periodic":
         params = {"corr": params["corr"], **orbit_unknowns(data, model.mech.autonomous, lead)}
@@ -248,7 +254,7 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
                 stage=f"periodic, {int(active.sum())} smallest orbits")
         params, loss, failed = descend(
             periodic_loss, params, (static, mech, data, cfg, reg), lanes=lanes,
-            adam_steps=cfg.adam_steps, lbfgs_steps=cfg.lbfgs_steps, lr=cfg.learning_rate,
+            adam_steps=adam_steps, lbfgs_steps=lbfgs_steps, lr=cfg.learning_rate,
             failed=failed, progress=progress, stage="periodic")
     enforced = {}
     if training == "periodic" and cfg.constraint_rounds and not failed:
