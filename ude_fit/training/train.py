@@ -220,22 +220,23 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
     lead = (len(keys),) if ensemble else ()
     params = {"corr": _stack([p for p, _ in parts]) if ensemble else parts[0][0]}
     mech = model.mech
-    Z, R = residual_forces(UDE(mech), measured)
     reg = regularity_points(measured) if cfg.needs_points() else None
-    skip_equation = cfg.form == "amplitude" or cfg.from_mechanistic
     # the first training's steps: from the mechanistic model it has the whole correction to
     # learn
     adam_steps, lbfgs_steps = ((cfg.start_adam_steps, cfg.start_lbfgs_steps)
                                if cfg.from_mechanistic else (cfg.adam_steps, cfg.lbfgs_steps))
-    params, eq_loss, failed = descend(
-        equation_loss, params, (static, mech, jnp.asarray(Z), jnp.asarray(R), cfg.penalties,
-                                reg),
-        lanes=lanes,
-        # the amplitude form starts from the orbits' energy balance instead, and
-        # from_mechanistic from the mechanistic model
-        adam_steps=0 if skip_equation else cfg.equation_steps,
-        lbfgs_steps=0 if skip_equation else cfg.equation_lbfgs_steps,
-        lr=1e-2, progress=progress, stage="equation")
+    # the amplitude form starts from the orbits' energy balance instead of the residual
+    # forces, and from_mechanistic from the mechanistic model: no equation stage, and no
+    # residual forces to compute for it
+    if cfg.form == "amplitude" or cfg.from_mechanistic:
+        eq_loss, failed = np.full(len(keys), np.nan), {}
+    else:
+        Z, R = residual_forces(UDE(mech), measured)
+        params, eq_loss, failed = descend(
+            equation_loss, params, (static, mech, jnp.asarray(Z), jnp.asarray(R),
+                                    cfg.penalties, reg),
+            lanes=lanes, adam_steps=cfg.equation_steps, lbfgs_steps=cfg.equation_lbfgs_steps,
+            lr=1e-2, progress=progress, stage="equation")
     loss = eq_loss
     if training == "trajectory":
         params, loss, failed = descend(
