@@ -54,9 +54,10 @@ def _margins(sm: dict | None, points: list[dict], unit: str) -> list[str]:
         cells.append(f"{p['parameter']:.2f} {unit} {'stable' if p['stable'] else 'unstable'}"
                      f" {value}")
     return ["", "Stability margins (`--backbone-margins`: each labelled orbit's indicator as "
-            "the backbone predicts it, with the mechanistic model's growth-rate slope "
-            f"{sm['growth_rate_slope']:.4g} /s per {unit}, one standard error towards neutral): "
-            + "; ".join(cells) + "."]
+            "the backbone and its branch's straight line predict it, the smaller, with the "
+            f"mechanistic model's growth-rate slope {sm['growth_rate_slope']:.4g} /s per "
+            f"{unit}, one standard error towards neutral; the constant where they predict "
+            "none and for each branch's orbit next to the fold): " + "; ".join(cells) + "."]
 
 
 def _fold_cell(m: dict) -> str:
