@@ -103,8 +103,12 @@ def test_the_stability_margin_reaches_the_training(capsys):
 def test_backbone_margins_reach_the_training_of_a_self_excited_system(tmp_path, capsys):
     parse = lambda *f: fit_options(build_parser().parse_args(
         ["fit", "data.h5", *f, "--out", "o"]))
-    assert parse("--system", "flutter", "--backbone-margins").train.backbone_margins
-    assert not parse("--system", "flutter").train.backbone_margins
+    # on by default where they apply, off where asked or where they do not apply
+    assert parse("--system", "flutter").train.backbone_margins is True
+    assert parse("--system", "flutter", "--no-backbone-margins").train.backbone_margins is False
+    for where in (["--system", "oscillator"], ["--system", "flutter", "--approximator", "gp"],
+                  ["--system", "flutter", "--training", "trajectory"]):
+        assert parse(*where).train.backbone_margins is False, where
     for argv, message in [(["--system", "oscillator"], "--backbone-margins applies to "
                            "--system flutter with --training periodic only"),
                           (["--system", "flutter", "--approximator", "gp"],
@@ -120,8 +124,12 @@ def test_backbone_margins_reach_the_training_of_a_self_excited_system(tmp_path, 
 def test_a_start_from_the_mechanistic_model_is_a_network_option(tmp_path, capsys):
     parse = lambda *f: fit_options(build_parser().parse_args(
         ["fit", "data.h5", "--system", "flutter", *f, "--out", "o"]))
-    assert parse("--from-mechanistic").train.from_mechanistic
-    assert not parse().train.from_mechanistic
+    assert parse().train.from_mechanistic is True
+    assert parse("--no-from-mechanistic").train.from_mechanistic is False
+    # explicitly asked of trajectory training it applies; by default only to periodic orbits
+    assert parse("--training", "trajectory").train.from_mechanistic is False
+    assert parse("--training", "trajectory", "--from-mechanistic").train.from_mechanistic
+    assert parse("--approximator", "gp").train.from_mechanistic is False
     out = tmp_path / "out"
     rc = cli_main(["fit", "data.h5", "--system", "flutter", "--approximator", "gp",
                    "--from-mechanistic", "--out", str(out), "--quiet"])

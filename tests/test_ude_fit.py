@@ -1,7 +1,8 @@
 """`ude-fit fit` on the aerofoil rig's true limit cycles: the UDE against the mechanistic model,
 judged by the rig's own truth (Hopf, fold, orbits); model files, the diagram command, errors.
 
-One 5-start fit serves the module (run in-process, so compiled functions are shared).
+One 2-start fit serves the module (run in-process, so compiled functions are shared; two
+starts, not the default five, for CI's time: each starts from the mechanistic model).
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ def flutter_fit(tmp_path_factory, flutter_truth):
     data = d / "flutter.h5"
     write_truth_campaign(data, "flutter", airspeeds=AIRSPEEDS)
     out = d / "out"
-    rc = cli.main(["fit", str(data), "--system", "flutter", "--starts", "5", "--seed", "0",
+    rc = cli.main(["fit", str(data), "--system", "flutter", "--starts", "2", "--seed", "0",
                    "--reference-hopf", repr(flutter_truth["hopf"]), "--reference-fold",
                    repr(flutter_truth["fold"]), "--out", str(out), "--quiet"])
     with open(out / "metrics.json") as fh:
@@ -52,7 +53,7 @@ def test_metrics_file_has_both_models_side_by_side(flutter_fit):
     for side in ("mechanistic", "ude"):
         for key in ("branch_rms", "branch_max", "missed", "hopf", "fold", "trajectory_rms"):
             assert key in m[side], (side, key)
-    assert m["starts"]["requested"] == 5 and len(m["starts"]["records"]) == 5
+    assert m["starts"]["requested"] == 2 and len(m["starts"]["records"]) == 2
     for r in m["starts"]["records"]:             # where each start's folds are, and how many
         f = r["metrics"]
         assert f["fold_count"] == len(f["folds"]) + len(f["isola_folds"]), r
@@ -100,9 +101,9 @@ def test_ude_hopf_and_fold_within_0_1_mps_of_truth(flutter_fit, flutter_truth):
     assert abs(m["fold"]["model"] - flutter_truth["fold"]) <= 0.1
 
 
-def test_at_least_4_of_5_starts_adequate(flutter_fit):
+def test_at_least_80_percent_of_starts_adequate(flutter_fit):
     st = flutter_fit["metrics"]["starts"]
-    assert st["adequate"] >= 4
+    assert st["adequate"] >= 0.8 * st["requested"]
     kept = [r for r in st["records"] if r["start"] == st["kept"]][0]
     assert kept["adequate"]
     assert kept["metrics"]["branch_rms"] == min(r["metrics"]["branch_rms"]
@@ -428,7 +429,8 @@ def test_diverged_start_is_dropped_not_kept(flutter_fit, monkeypatch):
         return real(*a, **kw)
 
     monkeypatch.setattr(fit_module, "train_ude", first_diverges)
-    cfg = TrainConfig(equation_steps=200, adam_steps=50, lbfgs_steps=10)
+    cfg = TrainConfig(equation_steps=200, adam_steps=50, lbfgs_steps=10, start_adam_steps=50,
+                      start_lbfgs_steps=10)
     res = fit(ds, FitOptions("flutter", starts=2, train=cfg, mechanistic="equation"))
     st = res.to_json()["starts"]
     assert st["dropped"] == [{"start": 1, "reason": "periodic: loss is not finite at Adam step 25"}]

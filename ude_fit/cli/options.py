@@ -143,16 +143,19 @@ def add_fit_arguments(p) -> None:
                    "term lets it be (default: the training's, in docs/fitting.md; "
                    "benchmarks/label_margins.py shows how firmly a fit's starts hold each "
                    "label; experimental)")
-    p.add_argument("--backbone-margins", action="store_true",
-                   help="aerofoil, periodic training, experimental: each labelled orbit's "
-                   "stability margin as the points' Hopf normal-form backbone predicts it, at "
-                   "one standard error towards neutral, never below --stability-margin "
-                   "(docs/fitting.md; off by default)")
-    p.add_argument("--from-mechanistic", action="store_true",
-                   help="network, experimental: no equation stage; each start's first "
-                   "training begins at the mechanistic model and takes the longer step "
-                   "counts it needs to learn the whole correction (docs/fitting.md; off by "
-                   "default)")
+    p.add_argument("--backbone-margins", action=argparse.BooleanOptionalAction, default=None,
+                   help="aerofoil, periodic training: each labelled orbit's stability margin "
+                   "as the points' Hopf normal-form backbone and its branch's straight line "
+                   "predict it (the smaller, one standard error towards neutral; none for the "
+                   "orbits next to the fold), never below --stability-margin. Default: on for "
+                   "the aerofoil's network (--no-backbone-margins: --stability-margin for "
+                   "every orbit; docs/fitting.md)")
+    p.add_argument("--from-mechanistic", action=argparse.BooleanOptionalAction, default=None,
+                   help="network: no equation stage; each start's first training begins at "
+                   "the mechanistic model and takes the longer step counts it needs to learn "
+                   "the whole correction. Default: on for the aerofoil's network on periodic "
+                   "orbits (--no-from-mechanistic: the fit to the residual forces first; "
+                   "docs/fitting.md)")
     p.add_argument("--parameter-errors", action="store_true",
                    help="aerofoil, periodic training, experimental: every orbit's airspeed "
                    "is an unknown too, off its measured value at a cost set by the data's own "

@@ -90,14 +90,15 @@ class TrainConfig:
     parameter_errors: bool = False
     # periodic training: each labelled orbit's stability margin predicted by the points'
     # Hopf normal-form backbone, stability_margin where it predicts none
-    # (analysis.margins; experimental, off by default)
-    backbone_margins: bool = False
+    # (analysis.margins; None: the fit's default, on for the aerofoil's network trained on
+    # periodic orbits: FitOptions._defaults_that_apply; off in a training called directly)
+    backbone_margins: bool | None = None
     # no equation stage: each start's first training (periodic or trajectory) begins at the
     # mechanistic model (the fresh network's last layer is small) and takes
     # start_adam_steps and start_lbfgs_steps, as it has the whole correction to learn; the
-    # rounds after it keep adam_steps and lbfgs_steps (experimental, off by default:
-    # docs/experiments.md, thirty-fifth session)
-    from_mechanistic: bool = False
+    # rounds after it keep adam_steps and lbfgs_steps (None: as backbone_margins;
+    # docs/fitting.md)
+    from_mechanistic: bool | None = None
     start_adam_steps: int = 3000
     start_lbfgs_steps: int = 600
 
@@ -111,12 +112,10 @@ class TrainConfig:
         if not isinstance(self.constrain_unstable_branch, bool):
             raise ValueError("constrain_unstable_branch must be True or False, not "
                              f"{self.constrain_unstable_branch!r}")
-        if not isinstance(self.backbone_margins, bool):
-            raise ValueError("backbone_margins must be True or False, not "
-                             f"{self.backbone_margins!r}")
-        if not isinstance(self.from_mechanistic, bool):
-            raise ValueError("from_mechanistic must be True or False, not "
-                             f"{self.from_mechanistic!r}")
+        for name in ("backbone_margins", "from_mechanistic"):
+            v = getattr(self, name)
+            if not (isinstance(v, bool) or v is None):
+                raise ValueError(f"{name} must be True or False, not {v!r}")
         _check_int("start_adam_steps", self.start_adam_steps, 0)
         _check_int("start_lbfgs_steps", self.start_lbfgs_steps, 0)
         if not isinstance(self.parameter_errors, bool):
@@ -168,7 +167,11 @@ class TrainConfig:
                                            if getattr(self, k) is None})
         if cfg.equation_lbfgs_steps is None:
             cfg = dataclasses.replace(cfg, equation_lbfgs_steps=cfg.lbfgs_steps)
-        return cfg
+        # the fit's defaults for these (FitOptions) depend on more than the system; a
+        # training called directly does without them unless asked
+        return dataclasses.replace(cfg, **{k: False for k in ("backbone_margins",
+                                                              "from_mechanistic")
+                                           if getattr(cfg, k) is None})
 
     def penalty(self, kind: type) -> Penalty | None:
         """The penalty of class ``kind``, if any."""
@@ -442,11 +445,12 @@ class FitOptions:
                 and not t.branch_rounds and not t.monotone_rounds)
 
     def _defaults_that_apply(self) -> TrainConfig:
-        """The training configuration with the aerofoil's default rest-free network and
-        constraint rounds (fields left at None) switched off where they do not apply: the
-        rounds need the network, periodic training and the starts trained one at a time;
-        both need the network (not the GP, not the amplitude form). (An explicit request
-        there was refused above.)"""
+        """The training configuration with the aerofoil's defaults (fields left at None)
+        switched off where they do not apply: the rest-free network needs the network (not
+        the GP, not the amplitude form); the constraint rounds need it too, periodic
+        training and the starts trained one at a time; the start from the mechanistic model
+        and the backbone's margins, the network on a self-excited system's periodic orbits.
+        (An explicit request where one does not apply was refused above.)"""
         t = self.train
         network = self.approximator == "nn" and t.form == "network"
         if t.rest_free is None and not network:
@@ -454,6 +458,15 @@ class FitOptions:
         if t.constraint_rounds is None and not (network and self.training == "periodic"
                                                 and not self.starts_together):
             t = dataclasses.replace(t, constraint_rounds=0)
+        # the aerofoil's network on periodic orbits starts from the mechanistic model, with
+        # the backbone's margins: without the residual-force fit no start bends its branch
+        # into an S, and the margins hold the lowest orbits' stability away from a fold
+        # the one-period closure cannot see (docs/fitting.md)
+        on = (network and self.training == "periodic"
+              and system_kind(self.system).autonomous)
+        for name in ("from_mechanistic", "backbone_margins"):
+            if getattr(t, name) is None:
+                t = dataclasses.replace(t, **{name: on})
         return t
 
     def reference(self) -> dict:
