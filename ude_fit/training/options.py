@@ -89,7 +89,8 @@ class TrainConfig:
     # are the data's own scatter (training.parameter_errors; experimental, off by default)
     parameter_errors: bool = False
     # periodic training: each labelled orbit's stability margin predicted by the points'
-    # Hopf normal-form backbone, stability_margin where it predicts none
+    # Hopf normal-form backbone and its branch's line, stability_margin where they predict
+    # none
     # (analysis.margins; None: the fit's default, on for the aerofoil's network trained on
     # periodic orbits: FitOptions._defaults_that_apply; off in a training called directly)
     backbone_margins: bool | None = None
@@ -459,9 +460,10 @@ class FitOptions:
                                                 and not self.starts_together):
             t = dataclasses.replace(t, constraint_rounds=0)
         # the aerofoil's network on periodic orbits starts from the mechanistic model, with
-        # the backbone's margins: without the residual-force fit no start bends its branch
-        # into an S, and the margins hold the lowest orbits' stability away from a fold
-        # the one-period closure cannot see (docs/fitting.md)
+        # the data's margins: without the residual-force fit no start bends its branch into
+        # an S, and the margins hold each labelled orbit's stability as far from neutral as
+        # the points support, where the one-period closure alone barely sees an orbit go
+        # (docs/fitting.md)
         on = (network and self.training == "periodic"
               and system_kind(self.system).autonomous)
         for name in ("from_mechanistic", "backbone_margins"):
