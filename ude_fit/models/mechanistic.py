@@ -153,6 +153,35 @@ class MechanisticModel(eqx.Module):
         k = A.shape[0]
         return sum(jnp.linalg.det(jnp.delete(jnp.delete(A, i, 0), i, 1)) for i in range(k))
 
+    def secondary_indicators(self, M):
+        """The two other ways a stable orbit loses its stability, as smooth test functions
+        of its monodromy matrix M, (period doubling, torus): each positive while every
+        non-trivial multiplier is inside the unit circle, and changing sign as a real one
+        passes -1 (prod of 1 + mu) or a complex pair crosses the circle (prod over pairs of
+        1 - mu_i mu_j, from the exterior square of M). :meth:`stability_indicator` sees
+        neither: a pair's (1 - mu)(1 - conj mu) and a 1 - mu at mu = -1 stay positive.
+        The trivial multiplier's factors are taken out; the torus test is meaningful where
+        the fold test is positive (a real multiplier past 1 is a loss already), +inf where
+        it is not."""
+        n = M.shape[0]
+        flip = jnp.linalg.det(jnp.eye(n) + M)
+        pairs = jnp.linalg.det(jnp.eye(n * (n - 1) // 2) - _exterior_square(M))
+        if not self.autonomous:
+            return jnp.stack([flip, pairs])
+        # the trivial multiplier gives 1 + 1 in the first; in the second, its products with
+        # the others give exactly the fold test's factors
+        fold = self.stability_indicator(M)
+        positive = fold > 0
+        torus = jnp.where(positive, pairs / jnp.where(positive, fold, 1.0), jnp.inf)
+        return jnp.stack([flip / 2.0, torus])
+
+
+def _exterior_square(M):
+    """The exterior square of M: entries M_ik M_jl - M_il M_jk over index pairs i < j,
+    k < l; its eigenvalues are the products mu_i mu_j of M's over i < j."""
+    i, j = np.triu_indices(M.shape[0], 1)
+    return M[i][:, i] * M[j][:, j] - M[i][:, j] * M[j][:, i]
+
 
 class FlutterQS(MechanisticModel):
     """Quasi-steady 2-DoF aerofoil (the paper's appendix A.2).
