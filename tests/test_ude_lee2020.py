@@ -7,10 +7,11 @@ explicit linear terms', not the network's extrapolation to rest), starts from th
 model (no fit to the residual forces, which bent the branch into S shapes), takes each
 labelled orbit's stability margin from the points' Hopf normal-form backbone and its branch's
 line, and is held by constraint rounds to the energy-rising and rest-stability conditions,
-with no weight set by hand; a start whose diagram still folds more than once gets guide
-rounds (docs/fitting.md). Measured with five starts on seeds 0-2: 3, 5 and 4 of 5 adequate,
-every kept start under the data's scatter (1.1-2.2 %) with its Hopf point within 0.3 m/s of
-the data's estimate (docs/benchmarks.md).
+with no weight set by hand; an orbit labelled stable is held inside the unit circle against
+period doubling and torus bifurcations as well as folds; a start whose diagram still folds
+more than once gets guide rounds (docs/fitting.md). Measured with five starts on seeds 0-4:
+5 of 5 adequate on each, every kept start under the data's scatter (0.5-1.8 %) with its Hopf
+point within 0.33 m/s of the data's estimate (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -134,8 +135,8 @@ def test_guide_rounds_run_only_where_a_start_breaks_the_fold_rule(lee_fit):
 
 
 def test_at_least_80_percent_of_starts_adequate(lee_fit):
-    # with the default's five starts 3, 5 and 4 of 5 on seeds 0, 1 and 2
-    # (benchmarks/lee2020_benchmark.py): the issue's 80 % on two seeds of three
+    # with the default's five starts 5 of 5 on each of seeds 0-4
+    # (benchmarks/lee2020_benchmark.py; docs/benchmarks.md)
     _, m, _ = lee_fit
     assert m["starts"]["adequate"] >= 0.8 * m["starts"]["requested"], m["starts"]["records"]
     # the kept start is within the data's own scatter
