@@ -9,6 +9,12 @@ branch lies next to it. The twenty-ninth and thirty-third sessions' failing star
 lee2020/model2 hold the unstable orbits at 24.1 and 25.0 m/s exactly there
 (docs/experiments.md).
 
+Each point also has the period-doubling and torus tests (``secondary_indicators``: > 0
+while no multiplier has passed -1 and no complex pair has crossed the unit circle), which
+the training holds at the margin for an orbit labelled stable since the thirty-eighth
+session; a start trained before it can call an orbit stable that its diagram, judging by the
+largest multiplier, does not.
+
 The fit does not keep each orbit's unknowns (initial state, period), so they are solved
 again here: the training's own objective over the unknowns alone, the start's model fixed,
 from the measured orbits (Adam, then L-BFGS, as the training runs).
@@ -82,9 +88,12 @@ def label_margins(model, ds, steps: int, margin: float | None = None,
             "points": [{"parameter": float(o.parameter), "amplitude_mm": 1e3 * o.amplitude,
                         "stable": o.stable, "indicator": float(i), "margin": float(m),
                         "in_margins": None if np.isnan(h) else float(h),
+                        "period_doubling": float(s[0]), "torus": float(s[1]),
                         "closure": float(c), "misfit": float(f)}
-                       for o, i, m, h, c, f in zip(ds.orbits, ind, own, held,
-                                                   np.asarray(t.closure), np.asarray(t.fit))]}
+                       for o, i, m, h, s, c, f in zip(ds.orbits, ind, own, held,
+                                                      np.asarray(t.secondary),
+                                                      np.asarray(t.closure),
+                                                      np.asarray(t.fit))]}
 
 
 def _orbit_margins(fit_dir: str):
