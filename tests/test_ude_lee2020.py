@@ -21,6 +21,7 @@ import json
 import pytest
 
 from ude_fit import cli
+from ude_fit.analysis.metrics import FOLD_TOLERANCE
 
 import jax  # noqa: E402  (after the imports above, before any array)
 
@@ -115,6 +116,18 @@ def test_the_kept_hopf_point_is_where_the_unstable_orbits_point(lee_fit):
     # line reaches zero: the issue asks within 0.5 m/s
     hopf = lee_fit[1]["ude"]["hopf"]
     assert hopf["model"] is not None and abs(hopf["model"] - hopf["reference"]) <= 0.5
+
+
+def test_the_kept_diagram_turns_once(lee_fit):
+    # the issue: at most one fold; the data has stable and unstable orbits, which meet at
+    # one (seeds 0-4 with five starts: 19.6-20.3 m/s). Every point has its orbit, so the
+    # fold lies below them all (or within the tolerance at which a point may sit on it)
+    ude, points = lee_fit[1]["ude"], lee_fit[1]["data"]["point_records"]
+    folds = ude["folds"] + ude["isola_folds"]
+    assert len(folds) == 1, folds
+    airspeeds = [p["parameter"] for p in points]
+    span = max(airspeeds) - min(airspeeds)
+    assert folds[0] <= min(airspeeds) + FOLD_TOLERANCE * span
 
 
 def test_guide_rounds_run_only_where_a_start_breaks_the_fold_rule(lee_fit):
