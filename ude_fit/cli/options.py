@@ -140,7 +140,9 @@ def add_fit_arguments(p) -> None:
                    default=None, metavar="M",
                    help="periodic training: how far beyond neutral a labelled orbit's "
                    "stability indicator must lie on its labelled side before the stability "
-                   "term lets it be (default: the training's, in docs/fitting.md; "
+                   "term lets it be; for the aerofoil's orbits labelled stable, their "
+                   "period-doubling and torus tests too (default: the training's, in "
+                   "docs/fitting.md; "
                    "benchmarks/label_margins.py shows how firmly a fit's starts hold each "
                    "label; experimental)")
     p.add_argument("--backbone-margins", action=argparse.BooleanOptionalAction, default=None,
