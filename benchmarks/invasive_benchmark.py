@@ -8,9 +8,16 @@ input ("loose+control") and without ("loose"), each judged against the rig's own
 orbits: branch RMS, missed orbits, Hopf and fold airspeeds (truth 23.95 and 16.82 m/s) of
 the kept UDE and of the mechanistic model, adequate starts and the wall time of the fit.
 ``--add`` adds library effects to every fit's mechanistic model (as ``ude-fit fit --add``).
+``--rig-physics`` and ``--rig-effect`` start the rig in another configuration and with
+undeclared physics (as ``rig-sim serve --physics``/``--effect``); its truth (the Hopf and
+fold airspeeds too) is then that rig's. With ``--rig-physics c1=0 c3=0`` the aerofoil's
+aerodynamic lag state no longer acts, so the quasi-steady mechanistic model is the rig's
+own and a planted ``--rig-effect`` is missing physics without memory (docs/experiments.md,
+thirty-ninth session).
 
     python3 benchmarks/invasive_benchmark.py [--loose 0.05,0.15] [--sigmas 0,0.02]
-        [--seeds 0] [--starts 2] [--add EFFECT ...]
+        [--seeds 0] [--starts 2] [--add EFFECT ...] [--rig-physics NAME=VALUE ...]
+        [--rig-effect NAME=VALUE ...]
 """
 
 from __future__ import annotations
@@ -27,7 +34,9 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-from tests.invasive_cases import fit_cases  # noqa: E402
+from rig_sim.physics.configuration import configured_params  # noqa: E402
+from rig_sim.physics.effects import parse_effects as rig_effect_vector  # noqa: E402
+from tests.invasive_cases import fit_cases, truth_reference  # noqa: E402
 from ude_fit.models.library import parse_effects  # noqa: E402
 
 
@@ -61,20 +70,31 @@ def main(argv=None) -> int:
     ap.add_argument("--add", nargs="+", default=[], metavar="EFFECT[=SHAPE]",
                     help="library effects added to every fit's mechanistic model (as "
                     "ude-fit fit --add), e.g. heave_unsteady_aero pitch_unsteady_aero")
+    ap.add_argument("--rig-physics", nargs="+", default=[], metavar="NAME=VALUE",
+                    help="the rig's other configuration (as rig-sim serve --physics)")
+    ap.add_argument("--rig-effect", nargs="+", default=[], metavar="NAME=VALUE",
+                    help="undeclared physics the rig is started with (rig-sim --effect)")
     a = ap.parse_args(argv)
     effects = parse_effects("flutter", a.add)
+    try:
+        configured_params("flutter", a.rig_physics)
+        rig_effect_vector("flutter", a.rig_effect)
+    except ValueError as exc:
+        ap.error(str(exc))
+    rig = {"physics": tuple(a.rig_physics), "effects": tuple(a.rig_effect)}
     runs = []
     for loose in a.loose:
         for sigma in a.sigmas:
             for seed in a.seeds:
                 with tempfile.TemporaryDirectory() as d:
                     cases = fit_cases(d, loose, sigma=sigma, seed=seed, starts=a.starts,
-                                      effects=effects)
+                                      effects=effects, rig=rig)
                 runs.append({"loose": loose, "sigma": sigma, "seed": seed,
                              **{name: _figures(*c) for name, c in cases.items()}})
                 print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
     print(json.dumps({"benchmark": "invasive", "starts": a.starts, "added": a.add,
-                      "runs": runs}, indent=1))
+                      "rig": {**rig, "truth": truth_reference(rig)}, "runs": runs},
+                     indent=1))
     return 0
 
 

@@ -12,8 +12,9 @@ lee2020/model2 hold the unstable orbits at 24.1 and 25.0 m/s exactly there
 Each point also has the period-doubling and torus tests (``secondary_indicators``: > 0
 while no multiplier has passed -1 and no complex pair has crossed the unit circle), which
 the training holds at the margin for an orbit labelled stable since the thirty-eighth
-session; a start trained before it can call an orbit stable that its diagram, judging by the
-largest multiplier, does not.
+session (the aerofoil's fits; null where a test does not apply: an unstable orbit's torus
+test, or the oscillator, whose fits do not hold them); a start trained before it can call
+an orbit stable that its diagram, judging by the largest multiplier, does not.
 
 The fit does not keep each orbit's unknowns (initial state, period), so they are solved
 again here: the training's own objective over the unknowns alone, the start's model fixed,
@@ -88,12 +89,18 @@ def label_margins(model, ds, steps: int, margin: float | None = None,
             "points": [{"parameter": float(o.parameter), "amplitude_mm": 1e3 * o.amplitude,
                         "stable": o.stable, "indicator": float(i), "margin": float(m),
                         "in_margins": None if np.isnan(h) else float(h),
-                        "period_doubling": float(s[0]), "torus": float(s[1]),
+                        "period_doubling": _finite(s[0]), "torus": _finite(s[1]),
                         "closure": float(c), "misfit": float(f)}
                        for o, i, m, h, s, c, f in zip(ds.orbits, ind, own, held,
                                                       np.asarray(t.secondary),
                                                       np.asarray(t.closure),
                                                       np.asarray(t.fit))]}
+
+
+def _finite(x) -> float | None:
+    """``x`` as a JSON number; None where it is +inf (a test that does not apply: an
+    unstable orbit's torus test, or a model whose fits do not hold the tests)."""
+    return float(x) if np.isfinite(x) else None
 
 
 def _orbit_margins(fit_dir: str):

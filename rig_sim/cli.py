@@ -81,6 +81,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="seed of every random number the rig draws")
     s.add_argument("--effect", action="extend", nargs="+", default=[], metavar="NAME=VALUE",
                    help="undeclared physics, e.g. freeplay=0.01 (see docs/physics.md)")
+    s.add_argument("--physics", action="extend", nargs="+", default=[], metavar="NAME=VALUE",
+                   help="another configuration: physical parameters in place of the design "
+                   "values, e.g. c1=0 c3=0 (the aerofoil's lag state off; docs/physics.md)")
     s.add_argument("--effect-plugin", metavar="FILE.py:FUNC",
                    help="user force FUNC(t, q, qdot, params) -> generalised forces")
     s.add_argument("--rate", type=_positive_float, help="board loop rate in Hz (default: the rig's)")
@@ -97,11 +100,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _serve(args) -> int:
     from .firmware.board import Board, RigOptions, SettingError
+    from .physics.configuration import ConfigurationError
     from .physics.effects import EffectError
     from .device.server import Pacing, RigService, ServiceError, quiet_pymodbus
 
     quiet_pymodbus(args.verbose)
     options = RigOptions(kind=args.rig, sigma=args.noise, seed=args.seed, effects=args.effect,
+                         physics=args.physics,
                          plugin=args.effect_plugin, sensor_noise=not args.no_sensor_noise,
                          adc_bits=args.adc_bits, latency_samples=args.latency_samples,
                          rate_hz=args.rate)
@@ -112,7 +117,7 @@ def _serve(args) -> int:
                              port=args.port, serial=args.serial, baudrate=args.baud,
                              unit=args.unit)
         service.check()
-    except (SettingError, EffectError, ServiceError) as exc:
+    except (SettingError, EffectError, ConfigurationError, ServiceError) as exc:
         print(f"rig-sim: error: {exc}", file=sys.stderr)
         return 2
     board.advance(1)  # compile (or load the cached) kernel before announcing readiness

@@ -30,21 +30,37 @@ def truth_dataset(records):
         ("truth",))
 
 
-def write_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0):
+def truth_reference(rig: dict) -> dict:
+    """The Hopf and fold airspeeds of the rig started with ``rig`` (write_truth_campaign's
+    ``effects`` and ``physics``): the design rig's known ones, else its truth branch's."""
+    if not any(rig.values()):
+        return TRUTH_REFERENCE
+    from tests.ude_fixtures import flutter_branch
+    branch = flutter_branch(max(26.0, max(AIRSPEEDS) + 0.5), tuple(rig.get("effects", ())),
+                            None, tuple(rig.get("physics", ())))
+    return {"hopf": float(branch.hopf[0]), "fold": float(branch.folds[0]["V"])}
+
+
+def write_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
+                rig: dict | None = None):
     """Write the non-invasive campaign (held.h5) and the invasive one (loose.h5) under
-    ``folder``; returns the truth's open-loop orbits as a dataset."""
+    ``folder`` on the rig started with ``rig`` ({"effects": ..., "physics": ...}, as
+    write_truth_campaign takes them; the design rig by default); returns the truth's
+    open-loop orbits as a dataset."""
     folder = Path(folder)
+    rig = rig or {}
     truth = write_truth_campaign(folder / "held.h5", "flutter", airspeeds=AIRSPEEDS,
-                                 sigma=sigma, seed=seed, record_s=2.0)
+                                 sigma=sigma, seed=seed, record_s=2.0, **rig)
     write_truth_campaign(folder / "loose.h5", "flutter", airspeeds=AIRSPEEDS, sigma=sigma,
-                         seed=seed, record_s=2.0, invasive=loose)
+                         seed=seed, record_s=2.0, invasive=loose, **rig)
     return truth_dataset(truth)
 
 
-def against_truth(model, truth_ds, ranges, scales):
-    """``model``'s ModelMetrics against the rig's open-loop orbits."""
+def against_truth(model, truth_ds, ranges, scales, reference: dict = TRUTH_REFERENCE):
+    """``model``'s ModelMetrics against the rig's open-loop orbits (``reference``: its
+    Hopf and fold airspeeds)."""
     from ude_fit.analysis.diagram import _evaluate
-    return _evaluate(model, truth_ds, ranges, scales, TRUTH_REFERENCE, "truth")[1]
+    return _evaluate(model, truth_ds, ranges, scales, reference, "truth")[1]
 
 
 def mechanistic_cases(folder: Path, loose: float, effects: tuple = (), *,
@@ -73,26 +89,29 @@ def mechanistic_cases(folder: Path, loose: float, effects: tuple = (), *,
 
 def fit_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
               starts: int = 1, names=tuple(name for name, _, _ in FITS),
-              effects: tuple = ()) -> dict:
+              effects: tuple = (), rig: dict | None = None) -> dict:
     """{name: (FitResult, the kept UDE's ModelMetrics against the truth, fit seconds, the
     mechanistic model's ModelMetrics against the truth)} for the fits of :data:`FITS`
     called ``names`` on campaigns written under ``folder``, with the library ``effects``
-    added to the mechanistic model (as --add)."""
+    added to the mechanistic model (as --add), on the rig started with ``rig`` (as
+    :func:`write_cases` takes it)."""
     from ude_fit.data import load
     from ude_fit.fitting import fit
     from ude_fit.training.options import FitOptions
 
     folder = Path(folder)
-    truth_ds = write_cases(folder, loose, sigma=sigma, seed=seed)
+    truth_ds = write_cases(folder, loose, sigma=sigma, seed=seed, rig=rig)
+    reference = truth_reference(rig or {})
     out = {}
     for name, path, control in (f for f in FITS if f[0] in names):
         t0 = time.perf_counter()
         r = fit(load([folder / path], "flutter"),
                 FitOptions("flutter", starts=starts, seed=seed, control_input=control,
                            mechanistic_effects=effects),
-                reference=TRUTH_REFERENCE)
+                reference=reference)
         seconds = time.perf_counter() - t0
-        m = None if r.ude is None else against_truth(r.ude, truth_ds, r.ranges, r.scales)
+        m = None if r.ude is None else against_truth(r.ude, truth_ds, r.ranges, r.scales,
+                                                     reference)
         out[name] = (r, m, seconds, against_truth(r.mechanistic, truth_ds, r.ranges,
-                                                  r.scales))
+                                                  r.scales, reference))
     return out

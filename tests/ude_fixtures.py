@@ -29,7 +29,8 @@ from cbc_controller.log import CampaignWriter
 from rig_sim.device import register_map as M
 from rig_sim.firmware import layout as L
 from rig_sim.firmware.board import Board, RigOptions
-from rig_sim.physics.flutter import FlutterParams, flutter_kernel_params
+from rig_sim.physics.configuration import configured_params
+from rig_sim.physics.flutter import flutter_kernel_params
 from rig_sim.physics.oscillator import OscillatorParams, oscillator_kernel_params
 from rig_sim.physics.rhs import flutter_deriv, oscillator_deriv
 from rig_sim.physics.truth import (flutter_lco_branch, flutter_orbit_at, oscillator_orbit_at,
@@ -64,18 +65,20 @@ START_FROM_CLEAN = ("freeplay", "heave_friction", "pitch_friction")
 
 
 @lru_cache(maxsize=8)
-def flutter_branch(V_max: float = 26.0, effects: tuple = (), plugin: str | None = None):
-    """The truth branch; ``effects``: ("name=value", ...) the rig is started with, and
+def flutter_branch(V_max: float = 26.0, effects: tuple = (), plugin: str | None = None,
+                   physics: tuple = ()):
+    """The truth branch; ``effects``: ("name=value", ...) the rig is started with,
     ``plugin`` its --effect-plugin spec (FILE.py:FUNC; it must vanish to first order at
-    rest). Effects that change rest itself (no usable Hopf point) start from the
-    effect-free branch's stable orbit at 24 m/s (see flutter_lco_branch's start_V)."""
+    rest) and ``physics`` its --physics ("name=value", ...: another configuration).
+    Effects that change rest itself (no usable Hopf point) start from the effect-free
+    branch's stable orbit at 24 m/s (see flutter_lco_branch's start_V)."""
     start = 24.0 if any(e.split("=")[0] in START_FROM_CLEAN for e in effects) else None
     func = None
     if plugin:
         from rig_sim.physics.effects import load_plugin
         func = load_plugin(plugin)
-    return flutter_lco_branch(V_max=V_max, effects=list(effects) or None, start_V=start,
-                              plugin=func)
+    return flutter_lco_branch(configured_params("flutter", physics), V_max=V_max,
+                              effects=list(effects) or None, start_V=start, plugin=func)
 
 
 @lru_cache(maxsize=16)
@@ -119,17 +122,18 @@ def _rk4_period(deriv, y0: np.ndarray, T: float, n: int, drive=None) -> np.ndarr
     return H
 
 
-def flutter_truth_orbits(airspeeds, effects: tuple = (), plugin: str | None = None) -> list[dict]:
+def flutter_truth_orbits(airspeeds, effects: tuple = (), plugin: str | None = None,
+                         physics: tuple = ()) -> list[dict]:
     """Every truth orbit at each airspeed: dicts with parameter, frequency, stable,
     amplitude, coeffs (2, 15) (heave m, pitch rad; phase origin at the heave extremum the
     truth starts from), state, period, floquet_max, pitch_amp, heave_dc."""
     V_max = max(26.0, float(np.max(airspeeds)) + 0.5)
-    branch = flutter_branch(V_max, tuple(effects), plugin)
+    branch = flutter_branch(V_max, tuple(effects), plugin, tuple(physics))
     E = branch.effects
     force = branch._problem.plugin
     out = []
     for V in airspeeds:
-        Kp = flutter_kernel_params(FlutterParams(), float(V))
+        Kp = flutter_kernel_params(configured_params("flutter", physics), float(V))
         for orb in flutter_orbit_at(float(V), branch):
             def deriv(y, dy, t):
                 f = (0.0, 0.0) if force is None else force(0.0, y[0:2].copy(),
@@ -212,14 +216,14 @@ def _set_targets(board: Board, coeffs) -> None:
 
 def run_board_on_orbit(system: str, truth: dict, *, sigma: float, seed: int,
                        record_s: float, effects: tuple = (),
-                       plugin: str | None = None, target_scale: float = 1.0
-                       ) -> tuple[dict, dict, float]:
+                       plugin: str | None = None, target_scale: float = 1.0,
+                       physics: tuple = ()) -> tuple[dict, dict, float]:
     """Hold the board on a truth orbit; returns (timeseries, fourier {ch: mean, var},
     board frequency estimate). ``target_scale`` (flutter): the target's amplitude is the
     truth's times this, so that the board holds an orbit of the controlled system instead
-    (what a CBC point accepted with loose tolerances is)."""
+    (what a CBC point accepted with loose tolerances is). ``physics``: the rig's --physics."""
     b = Board(RigOptions(kind=system, sigma=sigma, seed=seed, effects=list(effects),
-                         plugin=plugin))
+                         plugin=plugin, physics=list(physics)))
     if system == "flutter":
         kp, kd = FLUTTER_GAINS
         b.set("parameter", truth["parameter"])
@@ -351,7 +355,7 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
                          sigma: float = 0.0, seed: int = 0, record_s=None,
                          keep_record: bool = True, effects: tuple = (),
                          plugin: str | None = None, held_within: float | None = None,
-                         invasive: float = 0.0) -> list[dict]:
+                         invasive: float = 0.0, physics: tuple = ()) -> list[dict]:
     """Write a campaign file of the rig's true periodic orbits; returns the truth records
     (one per point, in file order; see flutter_truth_orbits / oscillator_truth_orbits).
 
@@ -375,11 +379,15 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
     before the point is read (it moves there in seconds: after the fixed settle alone
     the unstable points were read halfway, 2-14 % short of where they end); the records
     stay the open-loop truth.
+    physics (flutter): the rig's --physics ("name=value", ...), another configuration that
+    the truth and the board share.
     """
     effects = tuple(effects)
+    if physics and system != "flutter":
+        raise ValueError("physics: the aerofoil's only (the oscillator's truth takes none)")
     if system == "flutter":
         truths = flutter_truth_orbits(DEFAULT_AIRSPEEDS if airspeeds is None else airspeeds,
-                                      effects, plugin)
+                                      effects, plugin, physics)
     elif system == "oscillator":
         truths = oscillator_truth_orbits(DEFAULT_FREQS if freqs is None else freqs,
                                          4 if per_freq is None else int(per_freq), effects,
@@ -393,7 +401,7 @@ def write_truth_campaign(path, system: str, *, airspeeds=None, freqs=None, per_f
         if record_s > 0:
             ts, fourier, f_est = run_board_on_orbit(system, tr, sigma=sigma, seed=seed + i,
                                                     record_s=record_s, effects=effects,
-                                                    plugin=plugin,
+                                                    plugin=plugin, physics=physics,
                                                     target_scale=1 + invasive * (-1) ** i)
             freq = f_est if system == "flutter" else tr["frequency"]
             navg, host = 10, tr["parameter"]

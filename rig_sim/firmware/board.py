@@ -19,9 +19,10 @@ from types import MappingProxyType
 
 import numpy as np
 
+from ..physics.configuration import configured_params
 from ..physics.effects import EFFECT_SLOTS, check_plugin, load_plugin, parse_effects
-from ..physics.flutter import FlutterParams, flutter_kernel_params
-from ..physics.oscillator import OscillatorParams, oscillator_kernel_params
+from ..physics.flutter import flutter_kernel_params
+from ..physics.oscillator import oscillator_kernel_params
 from ..device.register_map import BY_NAME
 from . import layout as L
 from .kernel import advance as _advance
@@ -78,6 +79,7 @@ class RigOptions:
     sigma: float = 0.0                 # process-noise intensity
     seed: int = 0
     effects: list = field(default_factory=list)   # ["NAME=VALUE", ...]
+    physics: list = field(default_factory=list)   # ["NAME=VALUE", ...] off the design values
     plugin: str | None = None
     sensor_noise: bool = True
     adc_bits: int = 16
@@ -92,7 +94,7 @@ class Board:
         self.options = options
         self.spec = spec = SPECS[options.kind]
         self.lock = threading.RLock()
-        self.params = FlutterParams() if spec.kind == "flutter" else OscillatorParams()
+        self.params = configured_params(spec.kind, options.physics)
         self.effect_vector, self.effects = parse_effects(spec.kind, options.effects)
         self.plugin = None
         if options.plugin:

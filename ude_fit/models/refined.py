@@ -75,6 +75,10 @@ class Refined(MechanisticModel):
     def must_be_positive(self):
         return self.base_model.must_be_positive
 
+    @property
+    def holds_secondary_tests(self) -> bool:
+        return self.base_model.holds_secondary_tests
+
     def parameter_feature(self, drive):
         return self.base_model.parameter_feature(drive)
 

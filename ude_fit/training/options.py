@@ -110,18 +110,12 @@ class TrainConfig:
         if self.constraint_rounds is not None:
             _check_int("constraint_rounds", self.constraint_rounds, 0)
         _check_int("constraint_adam_steps", self.constraint_adam_steps, 0)
-        if not isinstance(self.constrain_unstable_branch, bool):
-            raise ValueError("constrain_unstable_branch must be True or False, not "
-                             f"{self.constrain_unstable_branch!r}")
-        for name in ("backbone_margins", "from_mechanistic"):
-            v = getattr(self, name)
-            if not (isinstance(v, bool) or v is None):
-                raise ValueError(f"{name} must be True or False, not {v!r}")
+        for name in ("constrain_unstable_branch", "parameter_errors"):
+            _check_bool(name, getattr(self, name))
+        for name in ("backbone_margins", "from_mechanistic"):     # None: the system's
+            _check_bool(name, getattr(self, name), none_ok=True)
         _check_int("start_adam_steps", self.start_adam_steps, 0)
         _check_int("start_lbfgs_steps", self.start_lbfgs_steps, 0)
-        if not isinstance(self.parameter_errors, bool):
-            raise ValueError("parameter_errors must be True or False, not "
-                             f"{self.parameter_errors!r}")
         _check_int("branch_rounds", self.branch_rounds, 0)
         _check_int("monotone_rounds", self.monotone_rounds, 0)
         for name in ("equation_steps", "equation_lbfgs_steps", "adam_steps", "lbfgs_steps"):
@@ -145,10 +139,8 @@ class TrainConfig:
         if self.form == "amplitude" and (self.rest_free or self.param_dependence != "input"):
             raise ValueError("--correction-form amplitude has its own linear terms and no "
                              "network: not with --rest-free or --param-dependence polynomial")
-        for name in ("rest_free", "amplitude_stages"):
-            v = getattr(self, name)
-            if not (isinstance(v, bool) or v is None and name == "rest_free"):
-                raise ValueError(f"{name} must be True or False, not {v!r}")
+        _check_bool("rest_free", self.rest_free, none_ok=True)
+        _check_bool("amplitude_stages", self.amplitude_stages)
         object.__setattr__(self, "penalties", tuple(self.penalties))
         kinds = [type(p) for p in self.penalties]
         for p in self.penalties:
@@ -189,6 +181,11 @@ class TrainConfig:
              if f.name != "penalties"}
         d["penalties"] = {k: v for p in self.penalties for k, v in p.to_json().items()}
         return d
+
+
+def _check_bool(name: str, v, none_ok: bool = False) -> None:
+    if not (isinstance(v, bool) or (none_ok and v is None)):
+        raise ValueError(f"{name} must be True or False, not {v!r}")
 
 
 def _check_int(name: str, v, least: int) -> None:
@@ -330,8 +327,7 @@ class FitOptions:
             if self.starts_together:
                 raise ValueError(f"{flag} needs the starts trained one at a time (not "
                                  "--starts-together): each start takes its own rounds")
-        if not isinstance(self.control_input, bool):
-            raise ValueError(f"control_input must be True or False, not {self.control_input!r}")
+        _check_bool("control_input", self.control_input)
         if self.control_input and not system_kind(self.system).autonomous:
             raise ValueError("--control-input applies to --system flutter only (the "
                              "oscillator's excitation already includes its control)")
@@ -360,9 +356,7 @@ class FitOptions:
             effects.append(pair)
         object.__setattr__(self, "mechanistic_effects", tuple(effects))
         self._check_guides()
-        if not isinstance(self.starts_together, bool):
-            raise ValueError(f"starts_together must be True or False, not "
-                             f"{self.starts_together!r}")
+        _check_bool("starts_together", self.starts_together)
         if self.approximator != "nn":
             nn_only = [f"--{p.option}" for p in active]
             if self.starts_together:
