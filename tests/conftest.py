@@ -94,8 +94,9 @@ def pytest_collection_modifyitems(config, items):
 
 # How much slower than the machine the ``minutes`` marks were measured on a CI machine may
 # be: the same commit's suite took 30 min on one machine of this kind and 74 on another,
-# where its one-start fits' steps were 2.4 times slower.
-SLOWER_MACHINE = 4.0
+# where its one-start fits' steps were 2.4 times slower; on that machine the module
+# fixtures took up to 3.2 times their marks (test_ude_control_input: 574 s, marked 3 min).
+SLOWER_MACHINE = 6.0
 
 
 def _timeout_for_its_module(item, minutes: float) -> None:
