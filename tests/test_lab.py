@@ -20,12 +20,11 @@ import time
 from pathlib import Path
 
 import pytest
-
-from tests.conftest import SLOWER_MACHINE
 import yaml
 
 from cbc_controller.log import read_campaign
 from rig_sim.physics.truth import flutter_lco_at, flutter_lco_branch
+from tests.conftest import SLOWER_MACHINE
 
 # CI order (tests/conftest.py): the compose and demo tests' campaigns and fits, 6-9 min beside
 # the other worker
@@ -203,8 +202,8 @@ def _pid_alive(pid: int) -> bool:
     return not (stat.exists() and stat.read_text().split(")")[-1].split()[0] == "Z")
 
 
-# the whole chain twice over (about 6 minutes on 2 cores, 15 on a CI machine 2.4 times
-# slower): the suite's 600 s limit would catch a slow machine, not a hang
+# the whole chain twice over (370 s on a slow 2-core machine beside the other CI worker):
+# the suite's 600 s limit would catch a slower machine, not a hang
 @pytest.mark.timeout(6 * 60 * SLOWER_MACHINE)
 def test_demo_interrupted_mid_campaign_then_resumed(tmp_path, small_campaign, truth):
     run = tmp_path / "run"
