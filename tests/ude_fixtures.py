@@ -123,11 +123,13 @@ def _rk4_period(deriv, y0: np.ndarray, T: float, n: int, drive=None) -> np.ndarr
 
 
 def flutter_truth_orbits(airspeeds, effects: tuple = (), plugin: str | None = None,
-                         physics: tuple = ()) -> list[dict]:
+                         physics: tuple = (), v_max: float | None = None) -> list[dict]:
     """Every truth orbit at each airspeed: dicts with parameter, frequency, stable,
     amplitude, coeffs (2, 15) (heave m, pitch rad; phase origin at the heave extremum the
-    truth starts from), state, period, floquet_max, pitch_amp, heave_dc."""
-    V_max = max(26.0, float(np.max(airspeeds)) + 0.5)
+    truth starts from), state, period, floquet_max, pitch_amp, heave_dc. ``v_max``: the
+    airspeed the truth branch is traced up to (default 26 m/s or just above the highest
+    airspeed; a configuration whose Hopf point lies higher needs more)."""
+    V_max = max(26.0, float(np.max(airspeeds)) + 0.5) if v_max is None else v_max
     branch = flutter_branch(V_max, tuple(effects), plugin, tuple(physics))
     E = branch.effects
     force = branch._problem.plugin

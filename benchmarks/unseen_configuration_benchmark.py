@@ -1,0 +1,125 @@
+"""The default command on wind-tunnel files from rig configurations nothing was tuned on
+(issue 17: "the same default command will be run, unchanged, on the other configuration's
+data"): prints one JSON object.
+
+For every configuration (the simulated aerofoil with other physical parameters, as
+``rig-sim serve --physics``) and seed: its CBC points are written as lee2020-format files
+(tests/lee_format.py: 11 points, the unstable orbit at 7 airspeeds across the bistable
+range and the stable one at the lowest 4, heave in sensor volts about an offset, pitch
+with encoder dropouts, the lab's file names), then ``ude-fit fit FOLDER --system flutter``
+runs on them as a researcher types it (a subprocess; only ``--starts``, ``--seed`` and the
+reference airspeeds for the report are given). The figures against the configured rig's
+own truth: adequate starts, the kept UDE's branch RMS, missed points, Hopf and fold
+airspeeds and their errors, the same for the mechanistic model and the points' backbone,
+and the fit's wall time.
+
+The configurations below were picked to differ from the design rig in stiffness, damping,
+mass and nonlinearity (each has one subcritical Hopf point and one fold), not from any
+fit's results; ``--physics`` runs any other.
+
+    python3 benchmarks/unseen_configuration_benchmark.py [--configs stiff,narrow,wide]
+        [--physics NAME=VALUE ...] [--sigma 0.02] [--seeds 0] [--starts 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+sys.path.insert(0, ROOT)
+
+from tests.lee_format import write_lee_campaign  # noqa: E402
+
+CONFIGURATIONS = {
+    # stiffer in pitch and heave, less heave damping: Hopf 25.26, fold 18.46 m/s
+    "stiff": ("k_alpha=70", "k_h=3600", "c_h=10"),
+    # a harder cubic pitch spring, more heave damping, a lighter carriage: a narrow bistable
+    # range (Hopf 22.50, fold 20.24 m/s)
+    "narrow": ("k_alpha3=5000", "c_h=20", "m_T=15"),
+    # more pitch inertia and imbalance, a softer pitch spring, less heave damping: a wide
+    # one (Hopf 21.77, fold 14.81 m/s)
+    "wide": ("I_alpha=0.15", "k_alpha=55", "x_alpha=0.26", "c_h=12"),
+}
+
+
+def _figures(model: dict, truth: dict) -> dict:
+    out = {"branch_rms": model.get("branch_rms"), "missed": model.get("missed")}
+    for name in ("hopf", "fold"):
+        v = model.get(name)
+        v = v.get("model") if isinstance(v, dict) else v
+        out[name] = v
+        out[f"{name}_error"] = None if v is None else v - truth[name]
+    return out
+
+
+def run_one(physics: tuple, sigma: float, seed: int, starts: int, work: str) -> dict:
+    folder = os.path.join(work, "points")
+    truth = write_lee_campaign(folder, physics, sigma=sigma, seed=seed)
+    out = os.path.join(work, "fit")
+    cmd = [sys.executable, "-m", "ude_fit.cli", "fit", folder, "--system", "flutter",
+           "--starts", str(starts), "--seed", str(seed),
+           "--reference-hopf", f"{truth['hopf']:.6f}",
+           "--reference-fold", f"{truth['fold']:.6f}", "--out", out, "--quiet"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    seconds = time.perf_counter() - t0
+    result = {"physics": list(physics), "sigma": sigma, "seed": seed,
+              "truth": {"hopf": truth["hopf"], "fold": truth["fold"]},
+              "seconds": round(seconds, 1), "exit": proc.returncode}
+    if proc.returncode != 0:
+        result["error"] = (proc.stderr.strip().splitlines() or ["(no message)"])[-1]
+        return result
+    with open(os.path.join(out, "metrics.json")) as fh:
+        m = json.load(fh)
+    st = m["starts"]
+    labelled = [p for p in m["data"]["point_records"] if p.get("stable") is not None]
+    result.update({
+        "points": m["data"]["points"], "labelled": len(labelled),
+        "adequate_starts": st["adequate"], "starts": st["requested"],
+        "ude": _figures(m["ude"], truth), "mechanistic": _figures(m["mechanistic"], truth),
+        "backbone": _figures(m["backbone"], truth) if m.get("backbone") else None,
+        "per_start": [{"adequate": r.get("adequate"),
+                       "branch_rms": (r.get("metrics") or {}).get("branch_rms"),
+                       "hopf": ((r.get("metrics") or {}).get("hopf") or {}).get("model"),
+                       "folds": (r.get("metrics") or {}).get("fold_count")}
+                      for r in st["records"]],
+    })
+    return result
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--configs", default=",".join(CONFIGURATIONS),
+                    help=f"named configurations, comma-separated ({', '.join(CONFIGURATIONS)})")
+    ap.add_argument("--physics", nargs="+", metavar="NAME=VALUE",
+                    help="one more configuration, as rig-sim serve --physics takes it")
+    ap.add_argument("--sigma", type=float, default=0.02, help="the rig's noise (default 0.02)")
+    ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
+    ap.add_argument("--starts", type=int, default=5, help="the fit's starts (default 5)")
+    args = ap.parse_args(argv)
+    configs = {}
+    for name in filter(None, args.configs.split(",")):
+        if name not in CONFIGURATIONS:
+            ap.error(f"--configs: {name!r} is not one of {', '.join(CONFIGURATIONS)}")
+        configs[name] = CONFIGURATIONS[name]
+    if args.physics:
+        configs["given"] = tuple(args.physics)
+    runs = []
+    for name, physics in configs.items():
+        for seed in (int(s) for s in args.seeds.split(",") if s.strip()):
+            with tempfile.TemporaryDirectory() as work:
+                runs.append({"config": name, **run_one(physics, args.sigma, seed,
+                                                       args.starts, work)})
+            print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
+    print(json.dumps({"benchmark": "unseen_configuration", "runs": runs}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,115 @@
+"""The simulated aerofoil's CBC points written as wind-tunnel files: the lee2020 layout
+(MATLAB v5, one point per file, the lab's file names), so that the default command a
+researcher types on real data can be tried on a rig configuration whose truth is known and
+that nothing in ``ude_fit`` was ever run on.
+
+Each point is the rig's own board held on a true orbit of the configured rig (its PD
+controller, the truth orbit as the target, process and sensor noise on), recorded at the
+board's rate, and written as the wind-tunnel files hold their channels:
+
+* row 0: heave in the sensor's volts (:data:`HEAVE_M_PER_V`, the sensitivity the files come
+  with) about a DC offset;
+* row 1: the control target, in the same volts;
+* row 2: the actuator signal in volts (the force over :data:`ACTUATOR_N_PER_V`, a gain the
+  files do not carry, as the real ones do not);
+* row 3: pitch in rad about an encoder offset, with bursts of failed reads at the
+  encoder's all-ones code (the real files lose 2-22 % of their pitch samples so);
+* row 4: a constant channel.
+
+The offsets, the gain and the dropout rate are the layout's, not the physics': the loader
+must remove or ignore each of them.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+import scipy.io
+
+from tests.ude_fixtures import flutter_branch, flutter_truth_orbits, run_board_on_orbit
+
+HEAVE_M_PER_V = 0.18              # the wind-tunnel heave sensor's sensitivity (lee2020 README)
+HEAVE_OFFSET_V = 3.3              # the sensor's DC level
+PITCH_OFFSET_RAD = 0.35           # the encoder's zero is not the rig's
+ENCODER_FAILED_READ = 2 * math.pi * (1 - 2.0 ** -20)   # the 20-bit encoder's all-ones code
+ACTUATOR_N_PER_V = 10.0           # actuator gain (unknown to the loader)
+RECORD_S = 20.0                   # seconds per point, as the wind-tunnel records
+
+
+def point_airspeeds(hopf: float, fold: float, n: int = 7) -> np.ndarray:
+    """``n`` airspeeds across the bistable range, from a quarter of the way above the fold to
+    just below the Hopf point (where a CBC campaign finds both orbits well apart)."""
+    span = hopf - fold
+    return np.linspace(fold + 0.25 * span, hopf - 0.08 * span, n)
+
+
+TRUTH_V_MAX = 40.0                # m/s: the truth branch traced up to here
+
+
+def truth_of(physics: tuple) -> dict:
+    """The configured rig's Hopf and fold airspeeds (its own continuation)."""
+    branch = flutter_branch(TRUTH_V_MAX, (), None, tuple(physics))
+    if branch.hopf is None or len(branch.folds) != 1:
+        raise ValueError(f"rig configuration {physics}: needs a subcritical Hopf point and "
+                         f"one fold (Hopf {branch.hopf}, {len(branch.folds)} folds)")
+    return {"hopf": float(branch.hopf[0]), "fold": float(branch.folds[0]["V"])}
+
+
+def _dropouts(n: int, fraction: float, rng) -> np.ndarray:
+    """A mask of failed encoder reads: bursts of 15 samples covering ``fraction`` of ``n``."""
+    bad = np.zeros(n, dtype=bool)
+    burst = 15
+    for start in rng.choice(max(n - burst, 1), size=int(fraction * n / burst), replace=False):
+        bad[start:start + burst] = True
+    return bad
+
+
+def write_point(path, truth: dict, ts: dict, frequency: float, rng,
+                dropout: float) -> None:
+    heave = ts["x"] / HEAVE_M_PER_V + HEAVE_OFFSET_V
+    target = ts["target"] / HEAVE_M_PER_V + HEAVE_OFFSET_V
+    control = ts["control"] / ACTUATOR_N_PER_V
+    pitch = ts["q2"] + PITCH_OFFSET_RAD
+    pitch = np.where(_dropouts(pitch.size, dropout, rng), ENCODER_FAILED_READ, pitch)
+    data = np.vstack([heave, target, control, pitch, np.full(heave.size, HEAVE_OFFSET_V)])
+    rate = 5000.0
+    t = np.arange(heave.size) / rate
+    scipy.io.savemat(str(path), {"data": data, "time": t[None, :],
+                                 "Wind_sped": float(truth["parameter"]),
+                                 "freq_actual": float(frequency)})
+
+
+def write_lee_campaign(folder, physics: tuple, *, sigma: float, seed: int, n_speeds: int = 7,
+                       n_stable: int = 4, dropout: float = 0.1,
+                       record_s: float = RECORD_S) -> dict:
+    """The configured rig's CBC points as wind-tunnel files in ``folder``: the unstable orbit
+    at each of ``n_speeds`` airspeeds (:func:`point_airspeeds`), the stable one at the lowest
+    ``n_stable`` of them, named as the lab names them (CBC_stable_v20_7.mat,
+    CBC_unstable_v21_6.mat). Returns the truth: Hopf, fold, and per file its orbit's
+    airspeed, stability and heave amplitude."""
+    os.makedirs(folder, exist_ok=True)
+    ref = truth_of(physics)
+    speeds = point_airspeeds(ref["hopf"], ref["fold"], n_speeds)
+    orbits = flutter_truth_orbits(tuple(float(v) for v in speeds), (), None, tuple(physics),
+                                  v_max=TRUTH_V_MAX)
+    kinds = sorted((round(tr["parameter"], 9), tr["stable"]) for tr in orbits)
+    expected = sorted((round(float(v), 9), st) for v in speeds for st in (False, True))
+    if kinds != expected:
+        raise ValueError(f"rig configuration {physics}: not one stable and one unstable orbit "
+                         f"at each airspeed of {np.round(speeds, 2).tolist()}")
+    rng = np.random.default_rng(seed)
+    points = []
+    for i, tr in enumerate(orbits):
+        k = int(np.argmin(np.abs(speeds - tr["parameter"])))
+        if tr["stable"] and k >= n_stable:
+            continue
+        ts, _, f_est = run_board_on_orbit("flutter", tr, sigma=sigma, seed=seed + i,
+                                          record_s=record_s, physics=tuple(physics))
+        kind = "stable" if tr["stable"] else "unstable"
+        name = f"CBC_{kind}_v{tr['parameter']:.1f}".replace(".", "_") + ".mat"
+        write_point(os.path.join(folder, name), tr, ts, f_est, rng, dropout)
+        points.append({"file": name, "airspeed": tr["parameter"], "stable": tr["stable"],
+                       "amplitude": tr["amplitude"]})
+    return {**ref, "physics": list(physics), "sigma": sigma, "seed": seed, "points": points}
