@@ -109,6 +109,9 @@ def write_lee_campaign(folder, physics: tuple, *, sigma: float, seed: int, n_spe
                                           record_s=record_s, physics=tuple(physics))
         kind = "stable" if tr["stable"] else "unstable"
         name = f"CBC_{kind}_v{tr['parameter']:.1f}".replace(".", "_") + ".mat"
+        if any(p["file"] == name for p in points):
+            raise ValueError(f"airspeeds {np.round(speeds, 2).tolist()}: two round to {name} "
+                             "(the lab's names hold 0.1 m/s)")
         write_point(os.path.join(folder, name), tr, ts, f_est, rng, dropout)
         points.append({"file": name, "airspeed": tr["parameter"], "stable": tr["stable"],
                        "amplitude": tr["amplitude"]})
