@@ -28,6 +28,7 @@ import os
 import numpy as np
 import scipy.io
 
+from rig_sim.firmware.board import SPECS
 from tests.ude_fixtures import flutter_branch, flutter_truth_orbits, run_board_on_orbit
 
 HEAVE_M_PER_V = 0.18              # the wind-tunnel heave sensor's sensitivity (lee2020 README)
@@ -74,8 +75,7 @@ def write_point(path, truth: dict, ts: dict, frequency: float, rng,
     pitch = ts["q2"] + PITCH_OFFSET_RAD
     pitch = np.where(_dropouts(pitch.size, dropout, rng), ENCODER_FAILED_READ, pitch)
     data = np.vstack([heave, target, control, pitch, np.full(heave.size, HEAVE_OFFSET_V)])
-    rate = 5000.0
-    t = np.arange(heave.size) / rate
+    t = np.arange(heave.size) / SPECS["flutter"].rate_hz    # the board's own sample rate
     scipy.io.savemat(str(path), {"data": data, "time": t[None, :],
                                  "Wind_sped": float(truth["parameter"]),
                                  "freq_actual": float(frequency)})
