@@ -1,19 +1,19 @@
-"""The optimiser loop: Adam, then L-BFGS (optax), all float64, on any loss of
-(params, *args). Compiled steps are shared by every call with the same loss and
-argument structure.
+"""The optimiser loop: Adam (optax), then L-BFGS (:mod:`.lbfgs`, on the host), all float64,
+on any loss of (params, *args). Compiled functions are shared by every call with the same
+loss and argument structure.
 
 :func:`minimize` optimises one set of parameters; :func:`descend` with ``lanes`` optimises
 N independent sets (every leaf with a leading axis of N, one *lane* per random start).
 Adam runs the lanes together, its step vmapped over them, optimiser state included: the
 integrations are long chains of small operations, and a batch shares their per-operation
 cost (on 2 cores a periodic step costs 12.6 ms per lane in a batch of 16, 18.4 ms alone;
-beyond four lanes the arithmetic sets the cost, docs/experiments.md). L-BFGS
-then runs each lane alone with the single run's compiled step: vmapped, its line search
-runs as long as its slowest lane and executes both sides of its branches (100 steps of 4
-lanes cost as much as 15 single runs). Lanes never interact: a lane's result is the
-single run's on its parameters, to rounding. A lane whose loss goes non-finite in Adam is
-dropped (its reason recorded) and from then on carries a copy of a live lane, so no NaN
-runs through the batch.
+beyond four lanes the arithmetic sets the cost, docs/experiments.md). One set's Adam steps
+and every L-BFGS evaluation call one compiled value-and-gradient of the loss
+(:data:`.lbfgs.value_and_grad`), so a loss is compiled once for both optimisers. L-BFGS
+runs each lane alone: its line search takes as many evaluations as the lane needs. Lanes
+never interact: a lane's result is the single run's on its parameters, to rounding. A lane
+whose loss goes non-finite in Adam is dropped (its reason recorded) and from then on carries
+a copy of a live lane, so no NaN runs through the batch.
 """
 
 from __future__ import annotations
@@ -25,6 +25,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+
+from . import lbfgs
+from .lbfgs import value_and_grad
 
 
 class Diverged(RuntimeError):
@@ -41,12 +44,6 @@ def _adam(lr):
     return _OPTIMISERS[("adam", lr)]
 
 
-def _lbfgs():
-    if "lbfgs" not in _OPTIMISERS:
-        _OPTIMISERS["lbfgs"] = optax.lbfgs()
-    return _OPTIMISERS["lbfgs"]
-
-
 def _adam_scan(params, state, loss, args, opt):
     def body(carry, _):
         p, s = carry
@@ -57,14 +54,6 @@ def _adam_scan(params, state, loss, args, opt):
     return params, state, vals[-1]
 
 
-def _lbfgs_update(params, state, loss, args, opt):
-    f = lambda p: loss(p, *args)
-    vg = optax.value_and_grad_from_state(f)
-    val, g = vg(params, state=state)
-    u, state = opt.update(g, state, params, value=val, grad=g, value_fn=f)
-    return optax.apply_updates(params, u), state, val
-
-
 def _over_lanes(step):
     """``step`` vmapped over the lanes of params and state (args shared), compiled."""
     @eqx.filter_jit
@@ -73,16 +62,24 @@ def _over_lanes(step):
     return batched
 
 
-_ADAM_STEPS = (eqx.filter_jit(_adam_scan), _over_lanes(_adam_scan))   # (one set, lanes)
-_LBFGS_STEP = eqx.filter_jit(_lbfgs_update)                            # one set at a time
+_ADAM_LANES = _over_lanes(_adam_scan)
 
 
-def _strong_types(tree):
-    """The same values without JAX's weak types: optax.lbfgs's fresh state holds weakly
-    typed scalars that its first update returns strongly typed, so without this the step
-    is compiled twice (several seconds for a shooting loss)."""
-    return jax.tree_util.tree_map(
-        lambda x: jnp.array(x, dtype=x.dtype) if isinstance(x, jax.Array) else x, tree)
+def _adam_apply(grad, state, params, opt):
+    u, state = opt.update(grad, state, params)
+    return optax.apply_updates(params, u), state
+
+
+_ADAM_APPLY = eqx.filter_jit(_adam_apply)
+
+
+def _adam_chunk(params, state, loss, args, opt):
+    """:data:`_ADAM_CHUNK` Adam steps on one set: the loss's compiled value-and-gradient
+    (the one L-BFGS calls) and a compiled update, dispatched step by step without waiting."""
+    for _ in range(_ADAM_CHUNK):
+        val, g = value_and_grad(params, loss, args)
+        params, state = _ADAM_APPLY(g, state, params, opt)
+    return params, state, val
 
 
 def _refill(live: np.ndarray, *trees):
@@ -110,24 +107,14 @@ def _put_lanes(tree, lanes: list):
 
 def _lbfgs_run(loss, params, args, steps: int, on_step):
     """L-BFGS on one set of parameters. Returns (params, loss, reason): reason is None,
-    or why it failed (the loss not finite at its first step). A loss that goes non-finite
-    after a finite step stops the run at its best point instead."""
-    opt = _lbfgs()
-    state = _strong_types(opt.init(params))
-    best_val, best = np.inf, params
-    for k in range(1, steps + 1):
-        new, state, v = _LBFGS_STEP(params, state, loss, args, opt)
-        v = float(v)                                  # the loss at ``params``
-        if not np.isfinite(v):
-            if np.isfinite(best_val):
-                return best, best_val, None
-            return params, np.nan, f"loss is not finite at L-BFGS step {k}"
-        if v < best_val:
-            best_val, best = v, params
-        params = new
-        if k % 10 == 0 or k == steps:
-            on_step(k, v)
-    return params, v, None
+    or why it failed (the loss not finite at its first step)."""
+    flat = lbfgs.Flat(params)
+
+    def evaluate(x):
+        v, g = value_and_grad(flat.tree(x), loss, args)
+        return float(v), flat.vector(g)
+    r = lbfgs.run(evaluate, flat.vector(params), steps, on_step)
+    return flat.tree(r.x), r.value, r.reason
 
 
 def descend(loss, params, args, *, lanes: int | None, adam_steps: int, lbfgs_steps: int,
@@ -142,7 +129,7 @@ def descend(loss, params, args, *, lanes: int | None, adam_steps: int, lbfgs_ste
     failures including this stage's. A lane fails when its loss is not finite in Adam or
     at the first L-BFGS step; later in L-BFGS it stops at its best point instead."""
     n = lanes or 1
-    which = 0 if lanes is None else 1          # index into _ADAM_STEPS
+    adam_steps_of = _adam_chunk if lanes is None else _ADAM_LANES
     failed = dict(failed or {})
     live = np.array([i not in failed for i in range(n)])
     vals = np.full(n, np.nan)
@@ -165,7 +152,7 @@ def descend(loss, params, args, *, lanes: int | None, adam_steps: int, lbfgs_ste
         state = (opt.init(params) if lanes is None
                  else eqx.filter_vmap(opt.init)(params))
         for done in range(_ADAM_CHUNK, adam_steps + _ADAM_CHUNK, _ADAM_CHUNK):
-            params, state, v = _ADAM_STEPS[which](params, state, loss, args, opt)
+            params, state, v = adam_steps_of(params, state, loss, args, opt)
             v = np.atleast_1d(np.asarray(v, float))
             bad = live & ~np.isfinite(v)
             lose(bad, f"{stage}: loss is not finite at Adam step {done}")
@@ -177,7 +164,7 @@ def descend(loss, params, args, *, lanes: int | None, adam_steps: int, lbfgs_ste
                 params, state = _refill(live, params, state)
             report("adam", min(done, adam_steps), adam_steps, live)
     if lbfgs_steps > 0 and live.any():
-        # one lane at a time, with the single run's compiled step (module docstring)
+        # one lane at a time, each on the host around the compiled value and gradient
         done = []
         for i in (np.flatnonzero(live) if lanes is not None else [0]):
             one = params if lanes is None else lane_of(params, int(i))
