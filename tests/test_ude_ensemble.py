@@ -79,9 +79,9 @@ def test_a_start_whose_loss_goes_non_finite_is_dropped_and_the_others_go_on():
 
 
 def test_lbfgs_lanes_stop_at_their_best_or_fail_each_on_its_own():
-    """L-BFGS runs lane by lane: lanes whose loss turns non-finite after a finite step
-    stop at their best point, one that starts non-finite fails without touching them;
-    each lane equals its single run."""
+    """L-BFGS runs lane by lane: lanes whose loss is not finite beyond a wall stay on its
+    finite side, one that starts non-finite fails without touching them; each lane equals
+    its single run."""
     centre = jnp.array([8.0, 0.0])              # beyond the NaN wall at x[0] = 5
     starts = jnp.array([[0.0, 0.0], [6.0, 0.0], [1.0, 1.0]])
     params, losses, failed = descend(_bowl, {"x": starts}, (centre,), lanes=3,

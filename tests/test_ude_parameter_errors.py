@@ -126,19 +126,31 @@ def test_an_offset_puts_the_orbit_back_at_its_true_airspeed(truth):
                                                                       as_logged, CFG))
 
 
-def test_exact_airspeeds_stay_where_they_were_logged(truth):
-    # the rig's orbits at their true airspeeds and its own (identified) model: the fit
-    # leaves every parameter within a twentieth of the prior's scale of its log (the
-    # identified model's own error sets that floor: measured 0.038 sigma at most)
+def test_the_fit_moves_each_orbit_by_its_logging_error(truth):
+    # the rig's orbits fitted with its identified model twice: as logged at their true
+    # airspeeds and as logged off them by ERRORS. The offsets themselves also absorb the
+    # identified model's own error (converged, up to 0.9 m/s here: the model lacks the
+    # wake's lag), which both fits share; their difference is each orbit's logging error,
+    # moved back. (The twentieth of the prior's scale that an earlier test asked of the
+    # offsets alone held only for an optimiser 300 steps short of the minimum.)
     ds, mech = truth
     sigma = 0.2
-    data = _with_errors(training_data(ds), ds, sigma)
-    params = orbit_unknowns(data, autonomous=True)
-    assert set(params) == {"dy0", "dT", "dP"}
+    e = ERRORS[:len(ds)]
     loss = lambda p, model, d: periodic_objective(model, p, d, CFG)
-    params, _ = minimize(loss, params, (UDE(mech), data), adam_steps=0, lbfgs_steps=300,
-                         lr=1e-3)
-    assert np.all(np.abs(sigma * np.asarray(params["dP"])) < 0.05 * sigma), params["dP"]
+    found = []
+    for data in (_with_errors(training_data(ds), ds, sigma),
+                 _with_errors(training_data(_logged_at(ds, e)), ds, sigma)):
+        params = orbit_unknowns(data, autonomous=True)
+        assert set(params) == {"dy0", "dT", "dP"}
+        params, _ = minimize(loss, params, (UDE(mech), data), adam_steps=0, lbfgs_steps=2000,
+                             lr=1e-3)
+        found.append(sigma * np.asarray(params["dP"]))
+    moved = found[1] - found[0]
+    assert np.all(np.sign(moved) == -np.sign(e)), moved
+    # each error at least half recovered, and most of the errors' RMS (measured 0.41 of
+    # the worst error and 0.18 of the RMS left over at 2000 steps)
+    assert np.all(np.abs(moved + e) < 0.5 * np.abs(e)), moved
+    assert np.sqrt(np.mean((moved + e) ** 2)) < 0.3 * np.sqrt(np.mean(e ** 2)), moved
 
 
 def test_a_stage_keeps_the_errors_of_its_orbits(truth):

@@ -127,7 +127,8 @@ def descend(loss, params, args, *, lanes: int | None, adam_steps: int, lbfgs_ste
     earlier stage); they are carried but not optimised. Returns (params, losses, failed):
     a loss per lane (NaN on failed lanes, whose parameters are meaningless) and the
     failures including this stage's. A lane fails when its loss is not finite in Adam or
-    at the first L-BFGS step; later in L-BFGS it stops at its best point instead."""
+    at the first L-BFGS step; later in L-BFGS a trial point where it is not finite is a
+    step too long (:mod:`.lbfgs`)."""
     n = lanes or 1
     adam_steps_of = _adam_chunk if lanes is None else _ADAM_LANES
     failed = dict(failed or {})
