@@ -129,7 +129,7 @@ def test_an_offset_puts_the_orbit_back_at_its_true_airspeed(truth):
 def test_the_fit_moves_each_orbit_by_its_logging_error(truth):
     # the rig's orbits fitted with its identified model twice: as logged at their true
     # airspeeds and as logged off them by ERRORS. The offsets themselves also absorb the
-    # identified model's own error (converged, up to 0.9 m/s here: the model lacks the
+    # identified model's own error (run on, by 0.9 m/s and more here: the model lacks the
     # wake's lag), which both fits share; their difference is each orbit's logging error,
     # moved back. (The twentieth of the prior's scale that an earlier test asked of the
     # offsets alone held only for an optimiser 300 steps short of the minimum.)
