@@ -67,7 +67,9 @@ def one_seed(data: str, seed: int, extra: list[str]) -> dict:
             "starts_run": len(m["starts"]["records"]),
             "trained_together": m["starts"].get("trained_together"),
             "train_s": round(m["starts"].get("train_seconds") or float("nan"), 1),
-            "kept": m["starts"]["kept"], "ude_branch_rms": (m["ude"] or {}).get("branch_rms"),
+            "kept": m["starts"]["kept"], "kept_by": m["starts"].get("kept_by"),
+            "data_scatter": m["data"]["scatter"],
+            "ude_branch_rms": (m["ude"] or {}).get("branch_rms"),
             "mechanistic_branch_rms": m["mechanistic"]["branch_rms"],
             "wall_s": round(wall, 1), "starts": starts}
 

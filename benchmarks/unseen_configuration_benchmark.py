@@ -82,11 +82,13 @@ def run_one(physics: tuple, sigma: float, seed: int, starts: int, work: str) -> 
     result.update({
         "points": m["data"]["points"], "labelled": len(labelled),
         "adequate_starts": st["adequate"], "starts": st["requested"],
+        "data_scatter": m["data"]["scatter"], "kept": st["kept"], "kept_by": st.get("kept_by"),
         "ude": _figures(m["ude"], truth), "mechanistic": _figures(m["mechanistic"], truth),
         "backbone": _figures(m["backbone"], truth) if m.get("backbone") else None,
         "per_start": [{"adequate": r.get("adequate"),
                        "branch_rms": (r.get("metrics") or {}).get("branch_rms"),
                        "hopf": ((r.get("metrics") or {}).get("hopf") or {}).get("model"),
+                       "fold": ((r.get("metrics") or {}).get("fold") or {}).get("model"),
                        "folds": (r.get("metrics") or {}).get("fold_count")}
                       for r in st["records"]],
     })

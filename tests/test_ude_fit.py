@@ -106,6 +106,8 @@ def test_at_least_80_percent_of_starts_adequate(flutter_fit):
     assert st["adequate"] >= 0.8 * st["requested"]
     kept = [r for r in st["records"] if r["start"] == st["kept"]][0]
     assert kept["adequate"]
+    # two starts cannot outvote each other: the smaller branch error is kept
+    assert st["kept_by"]["rule"] == "smallest error" and st["kept_by"]["start"] == st["kept"]
     assert kept["metrics"]["branch_rms"] == min(r["metrics"]["branch_rms"]
                                                 for r in st["records"] if r["adequate"])
 
@@ -114,6 +116,7 @@ def test_report_and_figures_written(flutter_fit):
     out = flutter_fit["out"]
     text = (out / "report.md").read_text()
     assert "| branch amplitude error, RMS |" in text and "adequate" in text
+    assert "Kept: the adequate start with the smallest branch error." in text
     for png in ("diagram.png", "phase_portraits.png"):
         with open(out / png, "rb") as fh:
             assert fh.read(8) == b"\x89PNG\r\n\x1a\n"

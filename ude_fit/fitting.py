@@ -8,9 +8,11 @@ Adequacy (the paper found single trainings often land in poor local minima): a s
 stability (nothing missed), its branch RMS error is below the mechanistic model's, and
 it is within ``adequacy_factor`` times the error of the best start that passes the
 other checks, or under ``adequacy_floor``, or under the data's own scatter about smooth
-branches (:func:`data_scatter`), whichever is largest. The kept start is the adequate one
-with the smallest branch error; if none is adequate, the one with the fewest missed points
-and then the smallest error, and the result says so.
+branches (:func:`data_scatter`), whichever is largest. The kept start is the medoid of
+three or more adequate starts by their Hopf and fold locations outside the measured range,
+else the adequate one with the smallest branch error (:mod:`.analysis.keep`); if none is
+adequate, the one with the fewest missed points and then the smallest error, and the result
+says so.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from ._precision import require_float64
 from .analysis.backbone import BackboneFit, backbone_of
 from .analysis.adequacy import error_bar, judge_starts, needs_fold
 from .analysis.diagram import _evaluate, diagram_ranges
+from .analysis.keep import KeptStart, choose_kept
 from .analysis.metrics import fold_points
 from .analysis.criticality import HopfCriticality, hopf_criticality
 from .analysis.margins import BackboneMargins, backbone_margins
@@ -121,6 +124,7 @@ class FitResult:
     ranges: dict
     starts: list[StartRecord] = field(default_factory=list)
     kept: StartRecord | None = None
+    kept_by: KeptStart | None = None    # the rule that chose it
     data: dict = field(default_factory=dict)        # what metrics.json records of the data
     fold_required: bool = False     # the data needs a fold (see adequacy.needs_fold)
     backbone: BackboneFit | None = None
@@ -166,6 +170,7 @@ class FitResult:
                        "trained_together": opts.approximator == "nn" and opts.starts_together,
                        "train_seconds": float(sum(s.train_seconds or 0.0 for s in self.starts)),
                        "kept": None if best is None else best.start,
+                       "kept_by": None if self.kept_by is None else self.kept_by.to_json(),
                        "criterion": {"missed": 0, "below_mechanistic": True,
                                      # the bar where the mechanistic model misses every point
                                      "below_backbone": error_bar(
@@ -347,7 +352,7 @@ def parameter_sources(mech, ident: dict, given: MechanisticParameters | None) ->
 
 def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
         progress=None, mechanistic: UDE | None = None) -> FitResult:
-    """Identify the mechanistic model, train ``opts.starts`` UDEs, keep the best adequate one.
+    """Identify the mechanistic model, train ``opts.starts`` UDEs, keep an adequate one.
 
     ``reference``: known Hopf/fold ({"hopf": V, "fold": V}, e.g. the truth) for the error
     figures; without it they are estimated from the data and marked as such.
@@ -437,11 +442,8 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
     for s, a in zip(starts, judge_starts([s.metrics for s in starts], mech_m, opts, scatter,
                                          fold_needed, _baseline_rms(backbone))):
         s.adequate = a
-    ok = [s for s in starts if s.completed]
-    best = None
-    if ok:
-        best = min(ok, key=lambda s: (not s.adequate, s.metrics.summary.missed,
-                                      s.metrics.summary.branch_rms))
+    kept_by = choose_kept(starts, ds.parameter_spans())
+    best = next((s for s in starts if s.start == kept_by.start), None)
     data_record = {"points": len(ds), "sources": list(ds.sources),
                    "stable": int(sum(1 for o in ds if o.stable is True)),
                    "unstable": int(sum(1 for o in ds if o.stable is False)),
@@ -458,7 +460,8 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                      diagrams={"mechanistic": mech_diag,
                                "ude": None if best is None else best.diagram},
                      mechanistic_metrics=mech_m, scales=scales, ranges=ranges, starts=starts,
-                     kept=best, data=data_record, fold_required=fold_needed,
+                     kept=best, kept_by=kept_by, data=data_record,
+                     fold_required=fold_needed,
                      backbone=backbone, guides=guides, margins=margins,
                      seconds=time.perf_counter() - t_start)
 

@@ -260,6 +260,21 @@ class ModelMetrics:
             else len(self.folds)
         return n + len(self.isola_folds or ())
 
+    def landmarks(self, spans: Mapping[str | None, tuple[float, float]]) -> dict[str, float]:
+        """The diagram's locations outside the measured parameter span of their branch
+        family (``spans``: {None: (lo, hi)} for self-excited data, {frequency key: (lo, hi)}
+        for forced), where no measured orbit pins them, by name and in the parameter's unit:
+        the Hopf point and the first fold of a self-excited diagram, each fold of each
+        forcing frequency's branch (in parameter order) of a forced one."""
+        outside = lambda family, v: not spans[family][0] <= v <= spans[family][1]
+        if isinstance(self.folds, Mapping):
+            return {f"fold {i + 1} at {f} Hz": float(v)
+                    for f, folds in self.folds.items() for i, v in enumerate(folds)
+                    if f in spans and outside(f, v)}
+        return {name: float(loc.model) for name, loc in (("Hopf point", self.hopf),
+                                                         ("fold", self.fold))
+                if loc.model is not None and outside(None, loc.model)}
+
     def to_json(self) -> dict:
         out = {**self.errors.to_json(), "hopf": self.hopf.to_json(),
                "fold": self.fold.to_json()}

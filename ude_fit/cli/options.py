@@ -84,7 +84,8 @@ def add_fit_arguments(p) -> None:
                    help="mechanistic identification: least squares on the equation error "
                    "(default), or that refined by output error on the periodic orbits")
     p.add_argument("--starts", type=positive_int("--starts"), default=5,
-                   help="random starts; the best adequate one is kept (default 5)")
+                   help="random starts; an adequate one is kept, the medoid of 3 or more "
+                        "(default 5)")
     p.add_argument("--starts-together", action="store_true",
                    help="train the network's starts together: Adam vmapped over the starts, "
                    "L-BFGS one start at a time (each start the same as alone; 16 starts "

@@ -258,6 +258,17 @@ class OrbitDataset:
                             "orbit's frequency is an output, not a group)")
         return np.unique(np.round(self.frequencies(), 6))
 
+    def parameter_spans(self) -> dict[str | None, tuple[float, float]]:
+        """The measured parameter range of each branch family: {None: (lo, hi)} for
+        self-excited data, {frequency key: (lo, hi)} per forcing frequency (the keys a
+        forced diagram's folds have in the metrics, f"{Hz:g}")."""
+        if not self.kind.forced:
+            p = self.parameters()
+            return {None: (float(p.min()), float(p.max()))}
+        return {f"{float(f):g}": (float(self.at_frequency(f).parameters().min()),
+                                  float(self.at_frequency(f).parameters().max()))
+                for f in self.frequencies_group()}
+
     def at_frequency(self, freq: float) -> OrbitDataset:
         """The orbits whose frequency rounds (1e-6 Hz) to freq's."""
         return self.select(np.round(self.frequencies(), 6) == round(float(freq), 6))

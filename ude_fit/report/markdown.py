@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from .._systems import system_kind
+from ..analysis.keep import KeptStart
 from .format import location, pct
-
 
 
 def _ref(m: dict, key: str) -> str:
@@ -12,6 +12,11 @@ def _ref(m: dict, key: str) -> str:
     if e.get("reference") is None:
         return "no reference"
     return f"{e['reference']:.3f} ({e['reference_source']})"
+
+
+def _kept_by(d: dict | None) -> str:
+    """The sentence saying how the kept start was chosen (none for older files)."""
+    return "" if d is None else " " + KeptStart.from_json(d).describe()
 
 
 def _backbone(bb: dict | None, unit: str) -> list[str]:
@@ -174,7 +179,8 @@ def render(metrics: dict, figures: dict) -> str:
             d, mech.get("identification", {}).get("control")) + [
          "## Models side by side", "",
          f"UDE: {metrics['approximator'].upper()} correction, training `{metrics['training']}`, "
-         f"start {ude['start'] if ude else '—'} of {metrics['starts']['requested']} kept.", "",
+         f"start {ude['start'] if ude else '—'} of {metrics['starts']['requested']} kept."
+         + _kept_by(metrics["starts"].get("kept_by")), "",
          "| | mechanistic | UDE |", "|---|---|---|"]
     g = lambda k: (mech.get(k), (ude or {}).get(k))
     rows = [("branch amplitude error, RMS", pct), ("branch amplitude error, max", pct),

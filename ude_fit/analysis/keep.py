@@ -1,0 +1,122 @@
+"""Which start a fit keeps.
+
+Every adequate start reproduces the measured orbits (:mod:`.adequacy`: nothing missed, no
+fold the data does not show, an error the data's scatter and the other starts allow). They
+differ most where the data is silent: the Hopf point beyond the highest orbit, the fold
+below the lowest, a forced branch's folds outside the measured forcing levels. There each
+start is an independent extrapolation, and the start with the smallest branch error is
+only the one that fits the points (and their noise) closest: its network may be the one
+that bent furthest. So among three or more adequate starts the kept one is their *medoid*:
+the start whose landmarks (:meth:`ModelMetrics.landmarks`: its Hopf and fold locations
+outside the measured parameter range of their branch family) lie nearest the others',
+summed over the other adequate starts. Where the measured orbits bracket every landmark (an
+oscillator campaign across its S-curves) there is nothing the data leaves open, and the
+smallest branch error decides; it does so too with fewer than three adequate starts (two
+cannot outvote each other) and between equally central starts. With no adequate start, the
+one with the fewest missed points and then the smallest error is kept (the fit says it is
+not adequate).
+
+A cut at the data's scatter (only starts closer to the points than their own scatter in
+the pool) was the first form: a correct model's branch error is about the scatter, and
+above it as often as below, so the cut took out good starts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .metrics_type import ModelMetrics
+
+# the fewest starts a consensus is taken over: with two, each is as near the other
+CONSENSUS_STARTS = 3
+
+
+@dataclass(frozen=True)
+class KeptStart:
+    """The kept start (its number, None when no start completed), the rule that chose it
+    ("consensus", "smallest error", "not adequate" or "none"), the starts the consensus
+    was taken over, the landmarks compared, and each of those starts' summed distance to
+    the others (in the landmarks' unit)."""
+    start: int | None
+    rule: str
+    pool: tuple[int, ...] = ()
+    landmarks: tuple[str, ...] = ()
+    distance: dict[int, float] = field(default_factory=dict)
+
+    RULES = ("consensus", "smallest error", "not adequate", "none")
+
+    def __post_init__(self):
+        if self.rule not in self.RULES:
+            raise ValueError(f"rule must be one of {', '.join(self.RULES)}, not {self.rule!r}")
+        if (self.start is None) != (self.rule == "none"):
+            raise ValueError("a start is kept exactly when the rule is not 'none'")
+        if self.rule == "consensus" and (len(self.pool) < CONSENSUS_STARTS
+                                         or self.start not in self.pool
+                                         or not self.landmarks):
+            raise ValueError(f"a consensus needs {CONSENSUS_STARTS} or more starts, the "
+                             "kept one among them, and a landmark to compare")
+
+    def to_json(self) -> dict:
+        return {"start": self.start, "rule": self.rule, "pool": list(self.pool),
+                "landmarks": list(self.landmarks),
+                "distance": {str(k): v for k, v in self.distance.items()}}
+
+    @classmethod
+    def from_json(cls, d: dict) -> KeptStart:
+        return cls(d["start"], d["rule"], tuple(d["pool"]), tuple(d["landmarks"]),
+                   {int(k): float(v) for k, v in d["distance"].items()})
+
+    def describe(self) -> str:
+        """One sentence for the report."""
+        if self.rule == "consensus":
+            return (f"Kept: the medoid of the {len(self.pool)} adequate starts (starts "
+                    f"{', '.join(map(str, self.pool))}) by their "
+                    f"{' and '.join(self.landmarks)} (outside the measured range, where the "
+                    "data does not pin them): the start whose locations lie nearest the "
+                    "others'.")
+        if self.rule == "smallest error":
+            return "Kept: the adequate start with the smallest branch error."
+        if self.rule == "not adequate":
+            return ("No start is adequate; kept: the one with the fewest missed points, then "
+                    "the smallest branch error.")
+        return "No start completed."
+
+
+def _error(m: ModelMetrics) -> float:
+    return m.summary.branch_rms
+
+
+def choose_kept(starts: Sequence, spans: Mapping[str | None, tuple[float, float]]
+                ) -> KeptStart:
+    """The kept start among ``starts`` (records with ``start``, ``completed``, ``adequate``
+    and ``metrics``), ``spans`` being the measured parameter range of each branch family
+    (:meth:`ude_fit.data.orbit.OrbitDataset.parameter_spans`)."""
+    done = [s for s in starts if s.completed]
+    if not done:
+        return KeptStart(None, "none")
+    adequate = sorted((s for s in done if s.adequate), key=lambda s: _error(s.metrics))
+    if not adequate:
+        best = min(done, key=lambda s: (s.metrics.summary.missed, _error(s.metrics)))
+        return KeptStart(best.start, "not adequate")
+    names = _common_landmarks(adequate, spans)
+    if len(adequate) < CONSENSUS_STARTS or not names:
+        return KeptStart(adequate[0].start, "smallest error")
+    L = np.array([[s.metrics.landmarks(spans)[n] for n in names] for s in adequate])
+    total = np.abs(L[:, None, :] - L[None, :, :]).sum(axis=(1, 2))
+    # the first of the smallest sums: ``adequate`` is in order of branch error
+    kept = adequate[int(np.argmin(total))]
+    return KeptStart(kept.start, "consensus", tuple(sorted(s.start for s in adequate)), names,
+                     {s.start: float(d) for s, d in sorted(zip(adequate, total),
+                                                           key=lambda sd: sd[0].start)})
+
+
+def _common_landmarks(pool: Sequence, spans) -> tuple[str, ...]:
+    """The landmarks outside the measured spans every start of ``pool`` has, in the first
+    start's order."""
+    if not pool:
+        return ()
+    sets = [s.metrics.landmarks(spans) for s in pool]
+    return tuple(n for n in sets[0] if all(n in other for other in sets[1:]))
