@@ -101,22 +101,15 @@ def choose_kept(starts: Sequence, spans: Mapping[str | None, tuple[float, float]
     if not adequate:
         best = min(done, key=lambda s: (s.metrics.summary.missed, _error(s.metrics)))
         return KeptStart(best.start, "not adequate")
-    names = _common_landmarks(adequate, spans)
+    marks = [s.metrics.landmarks(spans) for s in adequate]
+    # the landmarks every adequate start has, in the first one's order
+    names = tuple(n for n in marks[0] if all(n in m for m in marks[1:]))
     if len(adequate) < CONSENSUS_STARTS or not names:
         return KeptStart(adequate[0].start, "smallest error")
-    L = np.array([[s.metrics.landmarks(spans)[n] for n in names] for s in adequate])
+    L = np.array([[m[n] for n in names] for m in marks])
     total = np.abs(L[:, None, :] - L[None, :, :]).sum(axis=(1, 2))
     # the first of the smallest sums: ``adequate`` is in order of branch error
     kept = adequate[int(np.argmin(total))]
     return KeptStart(kept.start, "consensus", tuple(sorted(s.start for s in adequate)), names,
                      {s.start: float(d) for s, d in sorted(zip(adequate, total),
                                                            key=lambda sd: sd[0].start)})
-
-
-def _common_landmarks(pool: Sequence, spans) -> tuple[str, ...]:
-    """The landmarks outside the measured spans every start of ``pool`` has, in the first
-    start's order."""
-    if not pool:
-        return ()
-    sets = [s.metrics.landmarks(spans) for s in pool]
-    return tuple(n for n in sets[0] if all(n in other for other in sets[1:]))

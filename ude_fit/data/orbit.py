@@ -265,9 +265,11 @@ class OrbitDataset:
         if not self.kind.forced:
             p = self.parameters()
             return {None: (float(p.min()), float(p.max()))}
-        return {f"{float(f):g}": (float(self.at_frequency(f).parameters().min()),
-                                  float(self.at_frequency(f).parameters().max()))
-                for f in self.frequencies_group()}
+        spans = {}
+        for f in self.frequencies_group():
+            p = self.at_frequency(f).parameters()
+            spans[f"{float(f):g}"] = (float(p.min()), float(p.max()))
+        return spans
 
     def at_frequency(self, freq: float) -> OrbitDataset:
         """The orbits whose frequency rounds (1e-6 Hz) to freq's."""
