@@ -38,9 +38,11 @@ DEFAULT_DATA = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "da
 
 
 def _guide_rounds(record: dict) -> dict:
-    """A start's folds before its guide rounds and the rounds run, where it had any."""
+    """A start's folds and missed points before its guide rounds and the rounds run, where
+    it had any."""
     g = record.get("guide_rounds")
     return {} if g is None else {"folds_before_guide_rounds": g["folds_before"],
+                                 "missed_before_guide_rounds": g["missed_before"],
                                  "guide_rounds_run": len(g["rounds"]),
                                  "guide_round_kept": g["kept_round"]}
 

@@ -1,7 +1,7 @@
 """Guide rounds (``--guide-rounds``, ude_fit.guide_rounds): a start whose traced diagram has
-more folds than the adequacy rule allows is trained on with orbits of the one-fold curve;
-checked on a model with a second fold planted above the data, where the measured orbits
-cannot see it, and on the options and the report."""
+more folds than the adequacy rule allows, or misses a measured point, is trained on with
+orbits of the one-fold curve; checked on a model with a second fold planted above the data,
+where the measured orbits cannot see it, and on the rule, the options and the report."""
 
 import dataclasses
 from types import SimpleNamespace
@@ -17,7 +17,7 @@ from ude_fit import UDE, identify, load, training_data
 from ude_fit.analysis.diagram import _evaluate, diagram_ranges
 from ude_fit.cli import main
 from ude_fit.data.one_fold import fit_one_fold
-from ude_fit.guide_rounds import (ROUND_GUIDES, FoldRule, GuideRepair, GuideRound,
+from ude_fit.guide_rounds import (ROUND_GUIDES, DiagramRule, GuideRepair, GuideRound,
                                   GuideRounds, _better, constraint_weights, repair_start,
                                   round_guides)
 from ude_fit.report.markdown import _guide_rounds
@@ -72,7 +72,7 @@ def test_a_round_takes_away_the_fold_planted_above_the_data(campaign):
     _, m_mech = evaluate(UDE(mech))
     assert m.fold_count == m_mech.fold_count + 1
     # the rule's count where the mechanistic model has none of its own
-    rule = FoldRule(allowed=m_mech.fold_count)
+    rule = DiagramRule(allowed=m_mech.fold_count)
     opts = FitOptions("flutter", guide_rounds=2,
                       train=TrainConfig(adam_steps=150, lbfgs_steps=60))
     guides = round_guides(ds, fit_one_fold(ds, ds.kind.amplitude_window))
@@ -80,6 +80,7 @@ def test_a_round_takes_away_the_fold_planted_above_the_data(campaign):
                                            opts=opts, rule=rule,
                                            constraint_weights={}, evaluate=evaluate)
     assert isinstance(repair, GuideRepair) and repair.folds_before == m.fold_count
+    assert repair.missed_before == m.summary.missed
     assert repair.kept >= 1 and after.fold_count == m_mech.fold_count, repair
     assert after.summary.missed == 0
     assert float(model.correction.k) < 0.5, float(model.correction.k)
@@ -101,10 +102,31 @@ def test_only_a_start_that_breaks_the_rule_is_trained_on(campaign):
     assert repairs.needed(dataclasses.replace(m, folds=(15.0, 20.0, 22.0)))
     # none where the data needs one is left to the adequacy check (no round adds a fold)
     assert not repairs.needed(dataclasses.replace(m, folds=()))
-    assert repairs.rule == FoldRule(allowed=2)
+    assert repairs.rule == DiagramRule(allowed=2)
     off = GuideRounds(ds, data, m, FitOptions("flutter", guide_rounds=0), evaluate,
                       lambda **kw: None, False)
     assert not off.needed(dataclasses.replace(m, folds=(15.0, 20.0, 22.0)))
+
+
+# the two figures the rule reads, as a diagram that misses points has them
+_record = lambda folds, missed: SimpleNamespace(fold_count=folds,
+                                               summary=SimpleNamespace(missed=missed))
+
+
+def test_a_start_that_misses_a_point_is_trained_on(campaign):
+    # a branch that loses its stability between two orbits measured stable (a secondary
+    # bifurcation the data does not show) misses the one inside it with its folds allowed
+    ds, data, mech = campaign
+    ranges, scales = diagram_ranges(ds), np.asarray(data.y_scale)
+    evaluate = lambda model: _evaluate(model, ds, ranges, scales, TRUTH, "truth")
+    _, m = evaluate(UDE(mech))
+    repairs = GuideRounds(ds, data, m, FitOptions("flutter", guide_rounds=2), evaluate,
+                          lambda **kw: None, False)
+    assert not repairs.needed(_record(1, 0)) and not repairs.needed(_record(2, 0))
+    assert repairs.needed(_record(1, 1)) and repairs.needed(_record(0, 2))
+    off = GuideRounds(ds, data, m, FitOptions("flutter", guide_rounds=0), evaluate,
+                      lambda **kw: None, False)
+    assert not off.needed(_record(1, 1))
 
 
 def test_the_fold_rule_measures_how_far_a_diagram_is_from_it(campaign):
@@ -112,16 +134,18 @@ def test_the_fold_rule_measures_how_far_a_diagram_is_from_it(campaign):
     _, m = _evaluate(UDE(mech), ds, diagram_ranges(ds), np.asarray(data.y_scale), TRUTH,
                      "truth")
     with_folds = lambda *f: dataclasses.replace(m, folds=f)
-    rule = FoldRule(allowed=1)
+    rule = DiagramRule(allowed=1)
     assert [rule.excess(with_folds(*[16.0] * n)) for n in range(4)] == [0, 0, 1, 2]
+    # every missed point counts as a fold too many does
+    assert [rule.excess(_record(f, k)) for f, k in ((1, 1), (0, 2), (3, 1))] == [1, 2, 3]
     # a round is better only nearer the rule and with no more points missed
     assert _better(with_folds(16.0), with_folds(16.0, 20.0, 21.0), rule)
     assert not _better(with_folds(16.0, 20.0), with_folds(16.0, 20.0), rule)
-    # (the two figures the comparison reads, as a diagram that misses a point has them)
-    record = lambda folds, missed: SimpleNamespace(fold_count=folds,
-                                                   summary=SimpleNamespace(missed=missed))
-    assert not _better(record(1, 1), record(3, 0), rule)
-    assert _better(record(1, 1), record(3, 1), rule)
+    assert not _better(_record(1, 1), _record(3, 0), rule)
+    assert _better(_record(1, 1), _record(3, 1), rule)
+    # a point found again with no fold added is a repair; one found at a fold's price is not
+    assert _better(_record(1, 0), _record(1, 1), rule)
+    assert not _better(_record(2, 0), _record(1, 1), rule)
 
 
 def test_the_constraints_stay_at_their_rounds_weights():
@@ -168,11 +192,11 @@ def test_the_command_line_names_a_bad_round_count(tmp_path, capsys):
 def test_the_report_says_what_the_rounds_did():
     rounds = (GuideRound(0.3, 2, 0, 0.031, 0.01, ("energy-rising", "rest-stability")),
               GuideRound(0.9, 1, 0, 0.034, 0.02, ("energy-rising",)))
-    repair = GuideRepair(3, FoldRule(1), rounds, 2, broken_before=("energy-rising",))
+    repair = GuideRepair(3, 1, DiagramRule(1), rounds, 2, broken_before=("energy-rising",))
     assert repair.kept_broken == ("energy-rising",)
     rec = {"start": 2, "guide_rounds": repair.to_json()}
     text = "\n".join(_guide_rounds([{"start": 1}, rec]))
-    assert "start 2: 3 folds after training, 1 allowed" in text
+    assert "start 2: 3 folds after training, 1 allowed, 1 missed" in text
     assert "round 1 (weight 0.3): 2 folds, 0 missed, 3.10 %, breaks `--rest-stability`;" \
         in text
     assert "round 2 (weight 0.9): 1 folds, 0 missed, 3.40 %." in text

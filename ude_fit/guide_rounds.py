@@ -1,6 +1,13 @@
 """Guide rounds (``--guide-rounds R``; 2 by default for the aerofoil's network): a start
-whose traced diagram has more folds than the adequacy check allows is trained on with the
-one-fold curve's guide orbits (:mod:`ude_fit.training.guides`), and traced again.
+whose traced diagram breaks the adequacy check's picture of the data (more folds than it
+allows, or a measured point with no orbit of its stability) is trained on with the one-fold
+curve's guide orbits (:mod:`ude_fit.training.guides`), and traced again.
+
+Both defects are the correction's freedom where the data is silent: a fold between or
+above the measured orbits, or a branch that loses its stability between two orbits
+measured with the same one (a secondary bifurcation the data does not show: lee2020 seed
+0's third start, 2026-12-02, whose stable branch lost stability over 21.6-22.4 m/s and
+so missed the stable orbit at 22.4).
 
 Guides trained on from the start (``--guide-orbits``) pull every fit towards a curve a
 few per cent from the points, and cost the simulated campaigns' fits most of their
@@ -11,7 +18,7 @@ reach over the whole amplitude window the diagram is traced and judged in (a bra
 turns back above the guides' top would still count), where no measured orbit is near
 (:func:`round_guides`). Each round trains from the last round's weights at the guides'
 weight, three times the last round's, until the start has a model within the rule or
-``R`` rounds have run. The start keeps the model with the fewest folds among those that
+``R`` rounds have run. The start keeps the model nearest the rule among those that
 miss no more measured points than the trained one (the earliest of equals: the least
 guided).
 """
@@ -56,26 +63,28 @@ class GuideRound:
 
 
 @dataclass(frozen=True)
-class FoldRule:
-    """The adequacy check's fold count (:func:`ude_fit.analysis.adequacy._credible`): at
-    most ``allowed`` folds. (Its other half, one fold at least where the data has stable
-    and unstable orbits, is not a round's business: no round was measured to add one, and
-    on a few points in a narrow window a start without one is common and costly to
-    retrain.)"""
+class DiagramRule:
+    """The adequacy check's picture of the data (:func:`ude_fit.analysis.adequacy._credible`):
+    an orbit of its stability at every measured point, and at most ``allowed`` folds. (Its
+    other fold condition, one at least where the data has stable and unstable orbits, is
+    not a round's business: no round was measured to add one, and on a few points in a
+    narrow window a start without one is common and costly to retrain.)"""
     allowed: int
 
     def excess(self, m) -> int:
-        """How far ``m``'s diagram is from the rule: its folds beyond those allowed."""
-        return max(m.fold_count - self.allowed, 0)
+        """How far ``m``'s diagram is from the rule: its folds beyond those allowed and its
+        missed points."""
+        return max(m.fold_count - self.allowed, 0) + m.summary.missed
 
 
 @dataclass(frozen=True)
 class GuideRepair:
-    """A start's guide rounds: its folds before them, the rule, every round, the model kept
-    (0: the trained one, k: round k's), why the rounds ended early, if they did, and the
-    constraint conditions the trained model broke."""
+    """A start's guide rounds: its folds and missed points before them, the rule, every
+    round, the model kept (0: the trained one, k: round k's), why the rounds ended early,
+    if they did, and the constraint conditions the trained model broke."""
     folds_before: int
-    rule: FoldRule
+    missed_before: int
+    rule: DiagramRule
     rounds: tuple[GuideRound, ...]
     kept: int
     stop: str | None = None
@@ -87,21 +96,22 @@ class GuideRepair:
         return self.rounds[self.kept - 1].broken if self.kept else self.broken_before
 
     def to_json(self) -> dict:
-        return {"folds_before": self.folds_before, "folds_allowed": self.rule.allowed,
+        return {"folds_before": self.folds_before, "missed_before": self.missed_before,
+                "folds_allowed": self.rule.allowed,
                 "rounds": [r.to_json() for r in self.rounds], "kept_round": self.kept,
                 "stop": self.stop, "constraints_broken_before": list(self.broken_before)}
 
 
 class GuideRounds:
     """The guide rounds of a fit (``opts.guide_rounds``): which starts break the adequacy
-    rule's fold count (more folds than the mechanistic model's count plus one per family),
-    and the rounds for them; the one-fold curve is fitted once, at the first start that
-    needs it. ``evaluate(model)`` traces a model and
-    judges it against the data; ``say`` is the fit's progress callback."""
+    rule's picture (more folds than the mechanistic model's count plus one per family, or a
+    measured point missed), and the rounds for them; the one-fold curve is fitted once, at
+    the first start that needs it. ``evaluate(model)`` traces a model and judges it against
+    the data; ``say`` is the fit's progress callback."""
 
     def __init__(self, ds, data, mech_m, opts, evaluate, say, verbose):
         self.ds, self.data, self.opts, self.evaluate = ds, data, opts, evaluate
-        self.rule = FoldRule(mech_m.fold_count + mech_m.families)
+        self.rule = DiagramRule(mech_m.fold_count + mech_m.families)
         self.say, self.verbose = say, verbose
         self._guides = None
 
@@ -113,7 +123,7 @@ class GuideRounds:
             curve = fit_one_fold(self.ds, self.ds.kind.amplitude_window)
             if curve is None:
                 return model, diag, m, GuideRepair(
-                    m.fold_count, self.rule, (), 0,
+                    m.fold_count, m.summary.missed, self.rule, (), 0,
                     "no one-fold curve: the data has no stable and unstable points")
             self._guides = round_guides(self.ds, curve)
         return repair_start(model, m, diag, data=self.data, guides=self._guides,
@@ -139,16 +149,16 @@ def round_guides(ds: OrbitDataset, curve: OneFoldCurve) -> OrbitDataset:
 
 
 def repair_start(model: UDE, metrics, diagram, *, data: TrainingData, guides: OrbitDataset,
-                 opts: FitOptions, rule: FoldRule, constraint_weights: dict, evaluate,
+                 opts: FitOptions, rule: DiagramRule, constraint_weights: dict, evaluate,
                  progress=None):
-    """Guide rounds for one trained start whose diagram breaks the fold ``rule``.
+    """Guide rounds for one trained start whose diagram breaks ``rule``.
 
     ``evaluate(model)`` traces a model and judges it against the data: (diagram, metrics).
     ``constraint_weights``: the constraint rounds' final weights, by option name (the
     conditions stay at them; one never broken in training weighs 0, so every round's model
     is checked against them all and what it breaks is recorded). Returns (model, diagram,
     metrics, :class:`GuideRepair`) of the model kept."""
-    before = metrics.fold_count
+    before = metrics.fold_count, metrics.summary.missed
     broken_before = broken_constraints(model, data, opts.train)
     best = (metrics, 0, model, diagram)
     rounds, stop = [], None
@@ -173,12 +183,12 @@ def repair_start(model: UDE, metrics, diagram, *, data: TrainingData, guides: Or
             break
         weight *= WEIGHT_STEP
     metrics, kept, model, diagram = best
-    return model, diagram, metrics, GuideRepair(before, rule, tuple(rounds), kept, stop,
+    return model, diagram, metrics, GuideRepair(*before, rule, tuple(rounds), kept, stop,
                                                 broken_before)
 
 
-def _better(m, than, rule: FoldRule) -> bool:
-    """A round's model replaces the start's best so far where it is nearer the fold rule and
+def _better(m, than, rule: DiagramRule) -> bool:
+    """A round's model replaces the start's best so far where it is nearer the rule and
     misses no more points: a fold taken away at the price of a measured orbit is no
     repair. (The constraint conditions a round breaks are reported, not judged here: they
     are the training's means to the data's picture, with tolerances far inside what a

@@ -195,12 +195,12 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--guide-rounds", type=positive_int("--guide-rounds", 0), default=None,
                    metavar="R",
                    help="aerofoil, the network with periodic training: a start whose traced "
-                   "diagram has more folds than the adequacy rule allows is trained on with "
-                   "orbits of a one-fold curve fitted to the points, where no measured orbit is "
-                   "near, over the whole amplitude window, for up to R rounds, each at three "
-                   "times the last round's weight; it keeps the model with the fewest folds "
-                   "that misses no more points (docs/fitting.md; default 2 where it applies, 0 "
-                   "turns it off)")
+                   "diagram has more folds than the adequacy rule allows, or misses a measured "
+                   "point, is trained on with orbits of a one-fold curve fitted to the points, "
+                   "where no measured orbit is near, over the whole amplitude window, for up "
+                   "to R rounds, each at three times the last round's weight; it keeps the "
+                   "model nearest the rule that misses no more points (docs/fitting.md; "
+                   "default 2 where it applies, 0 turns it off)")
     p.add_argument("--control-input", action="store_true",
                    help="aerofoil: the recorded holding control as a known force on heave, "
                    "so a point held with some control is fitted as an orbit of the "

@@ -94,18 +94,20 @@ def _guide_rounds(records: list[dict]) -> list[str]:
                          f"{x['missed']} missed, {pct(x['branch_rms'])}"
                          + _newly_broken(x, g)
                          for i, x in enumerate(g["rounds"], 1)) or "no round ran"
-        kept = ("the trained model (no round came nearer the rule without missing a point)"
+        kept = ("the trained model (no round came nearer the rule without missing more "
+                "points)"
                 if g["kept_round"] == 0
                 else f"round {g['kept_round']}'s model")
         stop = f" Stopped: {g['stop']}." if g.get("stop") else ""
         out.append(f"- start {r['start']}: {g['folds_before']} folds after training, "
-                   f"{g['folds_allowed']} allowed; {done}. Kept {kept}; the table gives "
+                   f"{g['folds_allowed']} allowed, {g['missed_before']} missed; "
+                   f"{done}. Kept {kept}; the table gives "
                    f"its figures.{stop}")
     if not out:
         return []
     return ["", "Guide rounds (`--guide-rounds`): the starts whose diagram had more folds "
-            "than allowed were trained on with orbits of the one-fold curve fitted to the "
-            "points (docs/fitting.md):", "", *out]
+            "than allowed, or missed a measured point, were trained on with orbits of the "
+            "one-fold curve fitted to the points (docs/fitting.md):", "", *out]
 
 
 def _newly_broken(r: dict, g: dict) -> str:

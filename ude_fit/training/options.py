@@ -22,7 +22,8 @@ from .penalties import Penalty
 APPROXIMATORS = ("nn", "gp")
 TRAININGS = ("trajectory", "periodic")
 MECHANISTIC = ("equation", "periodic")
-# guide rounds for a start that breaks the fold rule (ude_fit.guide_rounds), by default:
+# guide rounds for a start whose diagram has folds the adequacy rule does not allow or
+# misses a measured point (ude_fit.guide_rounds), by default:
 # the first at the guide weight, the second at three times it (on lee2020 seeds 0-2 a
 # second round ran in 7 starts and was the one kept in 1; docs/fitting.md)
 DEFAULT_GUIDE_ROUNDS = 2
@@ -249,7 +250,7 @@ class FitOptions:
     guide_orbits: int = 0
     guide_weight: float = 0.3
     # rounds of training on with the guides for a start whose traced diagram breaks the
-    # adequacy rule's fold count (ude_fit.guide_rounds; aerofoil), the first at
+    # adequacy rule's fold count or misses a point (ude_fit.guide_rounds; aerofoil), the first at
     # guide_weight; None: DEFAULT_GUIDE_ROUNDS where they apply, else 0
     guide_rounds: int | None = None
 
