@@ -13,11 +13,13 @@ undeclared physics (as ``rig-sim serve --physics``/``--effect``); its truth (the
 fold airspeeds too) is then that rig's. With ``--rig-physics c1=0 c3=0`` the aerofoil's
 aerodynamic lag state no longer acts, so the quasi-steady mechanistic model is the rig's
 own and a planted ``--rig-effect`` is missing physics without memory (docs/experiments.md,
-thirty-ninth session).
+thirty-ninth session). ``--loop`` runs the discovery loop (``ude-fit loop``, the
+pipeline's second part) instead of the fit, and judges its refined model the same way,
+with the issue's criterion against the loop on the non-invasive campaign ("criterion").
 
     python3 benchmarks/invasive_benchmark.py [--loose 0.05,0.15] [--sigmas 0,0.02]
         [--seeds 0] [--starts 2] [--add EFFECT ...] [--rig-physics NAME=VALUE ...]
-        [--rig-effect NAME=VALUE ...]
+        [--rig-effect NAME=VALUE ...] [--loop]
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ jax.config.update("jax_enable_x64", True)
 
 from rig_sim.physics.configuration import configured_params  # noqa: E402
 from rig_sim.physics.effects import parse_effects as rig_effect_vector  # noqa: E402
-from tests.invasive_cases import fit_cases, truth_reference  # noqa: E402
+from tests.invasive_cases import (fit_cases, loop_cases, truth_reference,  # noqa: E402
+                                  write_cases)
 from ude_fit.models.library import parse_effects  # noqa: E402
 
 
@@ -45,9 +48,7 @@ def _floats(text: str) -> list[float]:
 
 
 def _against_truth(metrics) -> dict:
-    j = metrics.to_json()
-    return {"branch_rms_vs_truth": j["branch_rms"], "missed": j["missed"],
-            "hopf": j["hopf"]["model"], "fold": j["fold"]["model"]}
+    return _figures_vs_truth(metrics.to_json())
 
 
 def _figures(result, metrics, seconds, mechanistic) -> dict:
@@ -61,12 +62,50 @@ def _figures(result, metrics, seconds, mechanistic) -> dict:
     return out
 
 
+def _figures_vs_truth(j: dict) -> dict:
+    """A model's figures against the truth, from its metrics' JSON."""
+    return {"branch_rms_vs_truth": j["branch_rms"], "missed": j["missed"],
+            "hopf": j["hopf"]["model"], "fold": j["fold"]["model"]}
+
+
+def _loop_figures(res, seconds, after) -> dict:
+    judged = res.after.controlled
+    return {"added": [k for k, _ in res.added], "seconds": round(seconds, 1), **after,
+            "judged_under_control": None if judged is None else
+            {"branch_rms": judged.branch_rms, "missed": judged.missed}}
+
+
+def _criterion(runs: dict) -> dict:
+    """Issue 17's invasive criterion, the loop with the control against the loop on the
+    non-invasive campaign (within 0.1 m/s, at most 1.5 times its error), and how much
+    worse the loop without the control is."""
+    held, ctrl, loose = (runs[k] for k in ("held", "loose+control", "loose"))
+    apart = lambda a, b, k: (None if a[k] is None or b[k] is None else abs(a[k] - b[k]))
+    out = {"hopf_apart": apart(ctrl, held, "hopf"), "fold_apart": apart(ctrl, held, "fold"),
+           "error_ratio": ctrl["branch_rms_vs_truth"] / held["branch_rms_vs_truth"],
+           "without_control_ratio": loose["branch_rms_vs_truth"] / held["branch_rms_vs_truth"]}
+    out["met"] = bool(out["hopf_apart"] is not None and out["hopf_apart"] <= 0.1
+                      and out["fold_apart"] is not None and out["fold_apart"] <= 0.1
+                      and out["error_ratio"] <= 1.5)
+    return out
+
+
+def _loop_run(folder, loose, sigma, seed, rig) -> dict:
+    truth = write_cases(folder, loose, sigma=sigma, seed=seed, rig=rig)
+    cases = loop_cases(folder, truth, seed=seed, reference=truth_reference(rig))
+    runs = {name: _loop_figures(res, sec, _figures_vs_truth(m))
+            for name, (res, sec, m) in cases.items()}
+    return {**runs, "criterion": _criterion(runs)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--loose", type=_floats, default=[0.05, 0.15])
     ap.add_argument("--sigmas", type=_floats, default=[0.0, 0.02])
     ap.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")], default=[0])
     ap.add_argument("--starts", type=int, default=2)
+    ap.add_argument("--loop", action="store_true",
+                    help="the discovery loop instead of the fit (--starts, --add unused)")
     ap.add_argument("--add", nargs="+", default=[], metavar="EFFECT[=SHAPE]",
                     help="library effects added to every fit's mechanistic model (as "
                     "ude-fit fit --add), e.g. heave_unsteady_aero pitch_unsteady_aero")
@@ -87,12 +126,16 @@ def main(argv=None) -> int:
         for sigma in a.sigmas:
             for seed in a.seeds:
                 with tempfile.TemporaryDirectory() as d:
-                    cases = fit_cases(d, loose, sigma=sigma, seed=seed, starts=a.starts,
-                                      effects=effects, rig=rig)
-                runs.append({"loose": loose, "sigma": sigma, "seed": seed,
-                             **{name: _figures(*c) for name, c in cases.items()}})
+                    if a.loop:
+                        figures = _loop_run(d, loose, sigma, seed, rig)
+                    else:
+                        cases = fit_cases(d, loose, sigma=sigma, seed=seed, starts=a.starts,
+                                          effects=effects, rig=rig)
+                        figures = {name: _figures(*c) for name, c in cases.items()}
+                runs.append({"loose": loose, "sigma": sigma, "seed": seed, **figures})
                 print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
-    print(json.dumps({"benchmark": "invasive", "starts": a.starts, "added": a.add,
+    print(json.dumps({"benchmark": "invasive", "stage": "loop" if a.loop else "fit",
+                      "starts": a.starts, "added": a.add,
                       "rig": {**rig, "truth": truth_reference(rig)}, "runs": runs},
                      indent=1))
     return 0

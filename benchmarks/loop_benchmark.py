@@ -179,7 +179,7 @@ def _ude_route(res, ds, system: str, seed: int, starts: int) -> dict:
     t0 = time.perf_counter()
     f = fit(ds, FitOptions(system=system, starts=starts, seed=seed),
             mechanistic=res.before.model)
-    compare_ude_route(res, ds, f, seed=seed)
+    compare_ude_route(res, f, seed=seed)
     r = res.routes
     return {"seconds": round(time.perf_counter() - t0, 2), "starts": starts,
             "kept_ude": f.ude is not None, "agree": None if r is None else r.agree,

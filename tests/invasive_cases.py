@@ -64,10 +64,12 @@ def against_truth(model, truth_ds, ranges, scales, reference: dict = TRUTH_REFER
 
 
 def mechanistic_cases(folder: Path, loose: float, effects: tuple = (), *,
-                      sigma: float = 0.0, seed: int = 0) -> dict:
-    """{name: (the mechanistic model's ModelMetrics against the truth, its identification)}
-    for the fits of :data:`FITS`: the mechanistic stage alone (equation error, seconds),
-    with the library ``effects`` added ((key, shape or None) pairs, as --add)."""
+                      sigma: float = 0.0, seed: int = 0) -> tuple[dict, object]:
+    """({name: (the mechanistic model's ModelMetrics against the truth, its
+    identification)} for the fits of :data:`FITS`, the truth's open-loop orbits as a
+    dataset): the mechanistic stage alone (equation error, seconds), with the library
+    ``effects`` added ((key, shape or None) pairs, as --add), on the campaigns written
+    under ``folder``."""
     from ude_fit.data import load
     from ude_fit.fitting import mechanistic_stage, prepare
     from ude_fit.models.ude import UDE
@@ -84,7 +86,7 @@ def mechanistic_cases(folder: Path, loose: float, effects: tuple = (), *,
         data = augment(data, mech)
         out[name] = (against_truth(UDE(mech), truth_ds, ranges, np.asarray(data.y_scale)),
                      ident)
-    return out
+    return out, truth_ds
 
 
 def fit_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
@@ -114,4 +116,26 @@ def fit_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
                                                      reference)
         out[name] = (r, m, seconds, against_truth(r.mechanistic, truth_ds, r.ranges,
                                                   r.scales, reference))
+    return out
+
+
+def loop_cases(folder: Path, truth_ds, *, bootstrap: int = 20, seed: int = 0,
+               reference: dict = TRUTH_REFERENCE) -> dict:
+    """{name: (LoopResult, seconds, its refined model's metrics against the truth as JSON)}
+    for the discovery loop (``ude-fit loop``, the pipeline's second part) on the campaigns
+    :func:`write_cases` wrote under ``folder`` (``truth_ds``: what it returned), one loop
+    per :data:`FITS` entry, with the control as an input where the entry says so."""
+    from ude_fit.data import load
+    from ude_fit.discovery.loop import close_loop
+    from ude_fit.training.control import ControlChoice
+
+    out = {}
+    for name, path, control in FITS:
+        t0 = time.perf_counter()
+        res = close_loop(load([Path(folder) / path], "flutter"), "flutter", seed=seed,
+                         bootstrap=bootstrap, reference=reference,
+                         control=ControlChoice("flutter") if control else None)
+        seconds = time.perf_counter() - t0
+        out[name] = (res, seconds, against_truth(res.after.model, truth_ds, res.ranges,
+                                                 res.after.scales, reference).to_json())
     return out

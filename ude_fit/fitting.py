@@ -42,8 +42,8 @@ from .models.mechanistic import FLUTTER_NOMINAL
 from .models.parameter_file import MechanisticParameters
 from .models.ude import UDE
 from .training.gp import fit_gp
-from .training.control import (ControlInput, against_heave_stiffness, control_input,
-                               with_control)
+from .training.control import (ControlChoice, ControlInput, against_heave_stiffness,
+                               control_input, with_control)
 from .training.guides import guide_orbits, with_guides
 from .training.identify import (INPUT_GAIN, TrainingData, augment, identify, residual_forces,
                                 training_data)
@@ -304,29 +304,37 @@ def mechanistic_stage(ds: OrbitDataset, data: TrainingData, opts: FitOptions):
     """A fit's mechanistic identification by equation error: (training data, mechanistic
     model, identification info). With the control as an input the data come back carrying
     it as a known heave force (and the gain is identified where it is not known)."""
-    if opts.control_input:
-        return _identify_with_control(ds, data, opts)
+    choice = opts.control()
+    if choice is not None:
+        return identify_with_control(ds, data, choice, given=opts.mechanistic_parameters,
+                                     effects=opts.mechanistic_effects)
     mech, ident = identify_mechanistic(data, opts.system, given=opts.mechanistic_parameters,
                                        effects=opts.mechanistic_effects)
     return data, mech, ident
 
 
-def _identify_with_control(ds: OrbitDataset, data: TrainingData, opts: FitOptions):
-    """The training data with the recorded control as a known heave force, and the
-    mechanistic model identified on it (the gain with it where it is not known)."""
-    ctrl = control_input(ds, opts.control_gain)
+def identify_with_control(ds: OrbitDataset, data: TrainingData, choice: ControlChoice, *,
+                          given: MechanisticParameters | None = None, effects: tuple = (),
+                          bootstrap: int = 0, seed: int = 0):
+    """The training data with the recorded control as a known heave force, the mechanistic
+    model (with the library ``effects``) identified on it, the gain with it where the
+    ``choice`` does not know it, and the info (its ``control`` says the gain and where it
+    came from, and each point's control force against the heave spring's)."""
+    ctrl = control_input(ds, choice.gain)
     if ctrl.gain is None:
         raw = with_control(data, ds, 1.0)
-        mech, ident = identify_mechanistic(raw, opts.system, given=opts.mechanistic_parameters,
-                                           free_input=True, effects=opts.mechanistic_effects)
+        mech, ident = identify_mechanistic(raw, choice.system, given=given, free_input=True,
+                                           effects=effects, bootstrap=bootstrap, seed=seed)
         gain = ident["parameters"].pop(INPUT_GAIN)
         se = ident["std_error"].pop(INPUT_GAIN, None)
+        ident.get("bootstrap_std", {}).pop(INPUT_GAIN, None)
+        ident["sources"].pop(INPUT_GAIN, None)
         ctrl = ControlInput(ctrl.unit, float(gain), ctrl.source)
         ident["control"] = {**ctrl.to_json(), "gain_std_error": se}
     else:
-        mech, ident = identify_mechanistic(with_control(data, ds, ctrl.gain), opts.system,
-                                           given=opts.mechanistic_parameters,
-                                           effects=opts.mechanistic_effects)
+        mech, ident = identify_mechanistic(with_control(data, ds, ctrl.gain), choice.system,
+                                           given=given, effects=effects,
+                                           bootstrap=bootstrap, seed=seed)
         ident["control"] = ctrl.to_json()
     ident["control"]["against_heave_stiffness"] = against_heave_stiffness(
         ds, ctrl.gain, mech.values()["k_h"])
@@ -358,7 +366,9 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
     figures; without it they are estimated from the data and marked as such.
     ``progress(event=..., **fields)`` is called along the way. ``mechanistic``: a model
     to put the correction on instead of identifying one (e.g. a refined model; its
-    hidden states, if any, start from their periodic solutions along the data).
+    hidden states, if any, start from their periodic solutions along the data); with
+    the control as an input its gain must then be known (given, or the record in N):
+    nothing is identified.
     """
     require_float64("fit")
     say = progress or (lambda **kw: None)
@@ -367,8 +377,20 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
         reference = opts.reference() or None
     data, ranges, ref, ref_source = prepare(ds, opts.system, reference, opts.samples)
     if mechanistic is not None:
+        ident = None
+        choice = opts.control()
+        if choice is not None:
+            ctrl = control_input(ds, choice.gain)
+            if ctrl.gain is None:
+                raise DataError(f"the control is recorded in {ctrl.unit}: a fit on a given "
+                                "mechanistic model needs its gain (--control-gain)")
+            data = with_control(data, ds, ctrl.gain)
+            ident = {"method": "given", "parameters": mechanistic.mech.parameters(),
+                     "std_error": {}, "control": {
+                         **ctrl.to_json(), "against_heave_stiffness": against_heave_stiffness(
+                             ds, ctrl.gain, mechanistic.mech.values()["k_h"])}}
         return _fit_on(mechanistic, ds, data, opts, ranges, ref, ref_source, say, t_start,
-                       verbose=progress is not None)
+                       ident, verbose=progress is not None)
     say(event="stage", stage="mechanistic identification")
     data, mech, ident = mechanistic_stage(ds, data, opts)
     data = augment(data, mech)      # an added effect's hidden states, along the orbits

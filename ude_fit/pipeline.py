@@ -22,7 +22,7 @@ from .training.options import FitOptions
 @dataclass(frozen=True)
 class PipelineOptions:
     """Every option of the fit (:class:`FitOptions`, the same as ``ude-fit fit`` takes) and
-    the loop's own. The loop uses the fit's system and seed."""
+    the loop's own. The loop uses the fit's system, seed and control input."""
     fit: FitOptions
     max_effects: int = 3        # most effects the loop adds
     min_gain: float = 0.1       # keep an effect only if the branch error falls by this
@@ -37,10 +37,6 @@ class PipelineOptions:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be an integer at least 1, "
                                  f"not {v!r}")
-        if self.fit.control_input:
-            # the loop's identifications take the data open loop: one fact, one model
-            raise ValueError("--control-input applies to ude-fit fit only (the loop fits "
-                             "the orbits as open-loop ones)")
         if self.fit.mechanistic_effects:
             # the loop chooses the effects itself, from the plain mechanistic model
             raise ValueError("--add applies to ude-fit fit only (the pipeline's loop adds "
@@ -56,7 +52,8 @@ class PipelineOptions:
         """The loop's options as its metrics.json records them."""
         return {"system": self.fit.system, "seed": self.fit.seed, "bootstrap": self.bootstrap,
                 "max_effects": self.max_effects, "min_gain": self.min_gain,
-                "locate_shapes": self.locate_shapes}
+                "locate_shapes": self.locate_shapes, "control_input": self.fit.control_input,
+                "control_gain": self.fit.control_gain}
 
     def to_json(self) -> dict:
         return {"fit": self.fit.to_json(), "max_effects": self.max_effects,
@@ -85,5 +82,6 @@ def run_pipeline(ds: OrbitDataset, options: PipelineOptions, *,
     say(event="stage", stage="pipeline 2/2: close the loop (explain, add, refit)")
     loop = close_loop(ds, opts.system, max_effects=options.max_effects,
                       min_gain=options.min_gain, seed=opts.seed, bootstrap=options.bootstrap,
-                      locate_shapes=options.locate_shapes, progress=progress)
+                      locate_shapes=options.locate_shapes, progress=progress,
+                      control=opts.control())
     return PipelineResult(options, fitted, loop)

@@ -6,14 +6,15 @@ from __future__ import annotations
 import os
 
 from ..discovery.explain import explain
+from ..fitting import identify_with_control
 from ..discovery.routes import learnt_correction
 from ..model_file import load_model
 from ..report.files import provenance, write_json, write_text
 from ..report.loop_markdown import candidates_section, render_explain
 from ..report.plots import parameter_label, plot_residuals
 from ..training.identify import training_data
-from .common import Progress, UsageError, command_line, load_data, out_dir
-from .loop import add_common
+from .common import Progress, UsageError, command_line, out_dir
+from .loop import add_common, data_and_control
 
 
 def add_parser(sub) -> None:
@@ -25,19 +26,24 @@ def add_parser(sub) -> None:
 
 
 def run(args, argv) -> int:
-    ds = load_data(args)
+    ds, choice = data_and_control(args)
     model = _model(args) if args.model else None     # checked before anything is written
     out = out_dir(args.out)
     progress = Progress(args.quiet)
     progress.say(f"{len(ds)} orbits loaded ({args.system}); explaining the residual")
     data = training_data(ds)
+    control = None
+    if choice is not None:      # the residual with the control's force as a known input
+        data, _, ident = identify_with_control(ds, data, choice)
+        control = ident["control"]
     ex = explain(data, args.system, seed=args.seed, bootstrap=args.bootstrap)
     doc = {**provenance(command_line(argv), args.data), "command_name": "explain",
            "data": {"points": len(ds), "sources": list(ds.sources)},
            "options": {k: v for k, v in vars(args).items()
                        if k not in ("data", "out", "quiet", "command")},
            "system": args.system,
-           "what": "least-squares mechanistic model", "explanation": ex.to_dict()}
+           "what": "least-squares mechanistic model", "control": control,
+           "explanation": ex.to_dict()}
     figures = {"residual against the states": "residuals.png"}
     plot_residuals(os.path.join(out, "residuals.png"), ex,
                    parameter_label=parameter_label(args.system))

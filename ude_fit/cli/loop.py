@@ -11,12 +11,14 @@ from ..report.files import provenance
 from ..report.loop_files import write_loop
 from ..training.options import FitOptions
 from .common import Progress, UsageError, command_line, load_data, out_dir
-from .options import add_data_arguments, nonnegative_float, positive_int
+from .options import (add_control_arguments, add_data_arguments, control_choice,
+                      nonnegative_float, positive_int)
 
 
 def add_common(p) -> None:
     """What explain, refine and loop share."""
     add_data_arguments(p)
+    add_control_arguments(p)
     p.add_argument("--seed", type=int, default=0, help="random seed of the cross-validation "
                    "folds and bootstrap (default 0)")
     p.add_argument("--bootstrap", type=positive_int("--bootstrap"), default=200,
@@ -59,6 +61,20 @@ def add_parsers(sub) -> None:
     _add_ude(lp)
 
 
+def data_and_control(args):
+    """The dataset and the control choice, checked before anything is written: a bad
+    --control-gain, or --control-input on data without control records, is a usage error."""
+    from ..training.control import control_input
+    try:
+        choice = control_choice(args)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    ds = load_data(args)
+    if choice is not None:
+        control_input(ds, choice.gain)      # a DataError naming a point without a record
+    return ds, choice
+
+
 def _options(args) -> dict:
     return {k: v for k, v in vars(args).items() if k not in ("data", "out", "quiet", "command")}
 
@@ -87,19 +103,19 @@ def run_refine(args, argv) -> int:
         add = list(parse_effects(args.system, args.add))
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    ds = load_data(args)
+    ds, choice = data_and_control(args)
     progress = Progress(args.quiet)
     res = refine(ds, args.system, add, seed=args.seed, bootstrap=args.bootstrap,
-                 progress=progress)
+                 progress=progress, control=choice)
     return _finish(args, argv, "refine", ds, res, progress)
 
 
 def run_loop(args, argv) -> int:
     if args.min_gain >= 1:
         raise UsageError(f"--min-gain must be below 1, not {args.min_gain}")
-    ds = load_data(args)
+    ds, choice = data_and_control(args)
     progress = Progress(args.quiet)
     res = close_loop(ds, args.system, max_effects=args.max_effects, min_gain=args.min_gain,
                      seed=args.seed, bootstrap=args.bootstrap,
-                     locate_shapes=args.locate_shapes, progress=progress)
+                     locate_shapes=args.locate_shapes, progress=progress, control=choice)
     return _finish(args, argv, "loop", ds, res, progress)

@@ -201,14 +201,7 @@ def add_fit_arguments(p) -> None:
                    "to R rounds, each at three times the last round's weight; it keeps the "
                    "model nearest the rule that misses no more points (docs/fitting.md; "
                    "default 2 where it applies, 0 turns it off)")
-    p.add_argument("--control-input", action="store_true",
-                   help="aerofoil: the recorded holding control as a known force on heave, "
-                   "so a point held with some control is fitted as an orbit of the "
-                   "controlled system; the diagram is the open-loop one")
-    p.add_argument("--control-gain", type=finite_float("--control-gain"), metavar="G",
-                   help="--control-input: newtons per unit of the recorded control (default: "
-                   "1 for a control recorded in N, else identified with the mechanistic "
-                   "parameters)")
+    add_control_arguments(p)
     p.add_argument("--add", nargs="+", default=[], metavar="EFFECT[=SHAPE]",
                    help="library effects to add to the mechanistic model as terms of their "
                    "own, identified with it (see `ude-fit explain`; e.g. the aerofoil's "
@@ -223,6 +216,25 @@ def add_fit_arguments(p) -> None:
                    help="known Hopf airspeed (m/s) for the error figures")
     p.add_argument("--reference-fold", type=finite_float("--reference-fold"), metavar="V",
                    help="known fold airspeed (m/s) for the error figures")
+
+
+def add_control_arguments(p) -> None:
+    """--control-input and --control-gain (fit, pipeline, explain, refine, loop)."""
+    p.add_argument("--control-input", action="store_true",
+                   help="aerofoil: the recorded holding control as a known force on heave, "
+                   "so a point held with some control is fitted as an orbit of the "
+                   "controlled system; the diagram is the open-loop one")
+    p.add_argument("--control-gain", type=finite_float("--control-gain"), metavar="G",
+                   help="--control-input: newtons per unit of the recorded control (default: "
+                   "1 for a control recorded in N, else identified with the mechanistic "
+                   "parameters)")
+
+
+def control_choice(args):
+    """The :class:`ControlChoice` the flags of :func:`add_control_arguments` ask for (None
+    without --control-input); ValueError naming the option otherwise."""
+    from ..training.control import ControlChoice
+    return ControlChoice.of(args.system, args.control_input, args.control_gain)
 
 
 def fit_options(args):

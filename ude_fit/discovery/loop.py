@@ -10,21 +10,32 @@ to the mechanistic model's. ``close_loop`` decides what to add itself:
 3. add the top-ranked candidate, refit, re-trace; keep it only if the diagram improves
    (branch RMS error down by at least ``min_gain`` of its value, no more points missed,
    or fewer missed): an effect a statistical test likes but the dynamics do not need is
-   not kept;
+   not kept (with the control as an input, the model's orbits under the recorded control
+   are compared with the points instead, :mod:`~ude_fit.analysis.controlled`);
 4. repeat 2-3 on the refined model's residual until nothing significant is left, the
    top candidate does not improve the diagram, or ``max_effects`` are in.
 
 The first effect kept is *the* effect of the report (``metrics["effect"]``); every step
 is recorded. Optionally a UDE is fitted on the mechanistic model and on the refined one.
+
+With the recorded control as a known input (``control``, the aerofoil) every model is
+identified on the data carrying the control force (its gain with it where unknown), and
+every residual is taken with it: a point held with some control is an orbit of the
+controlled system, and without it the control's force would be read as missing physics.
+The rule that keeps an effect then compares each model's orbits under the recorded control
+with the points (:attr:`Stage.judged`): the open-loop diagram is as far from such points as
+the control moved them, whichever model is right about the open-loop system.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..analysis.controlled import ControlledOrbits, controlled_orbits
 from ..analysis.diagram import _evaluate
 from ..analysis.metrics_type import ModelMetrics
 from ..data.orbit import OrbitDataset
@@ -33,7 +44,9 @@ from ..models.forms import state_parts
 from ..models.library import LIBRARY, STRUCTURAL, effect, states_of
 from ..models.refined import describe
 from ..models.ude import UDE
-from ..training.identify import augment, identify
+from ..fitting import identify_with_control
+from ..training.control import ControlChoice
+from ..training.identify import TrainingData, augment, identify
 from .describe import VERY_STRONG, describe as describe_shapes, effect_fields
 from .explain import choose_shape, explain
 from .locate import Location, locate
@@ -51,11 +64,26 @@ class Stage:
     identification: dict
     scales: np.ndarray
     n_parameters: int
+    data: TrainingData      # what it was identified on, its residual taken on (control)
+    # with the control as an input: the model's orbits under the recorded control
+    controlled: ControlledOrbits | None = None
+
+    @property
+    def judged(self):
+        """What the loop's rule compares (branch error, missed points): the model's orbits
+        under the recorded control where the control is an input (a point held with
+        control is off the open-loop diagram by what the control did), else its
+        open-loop diagram."""
+        return self.metrics.summary if self.controlled is None else self.controlled
 
     def brief(self) -> dict:
         """The figures a step's record keeps."""
-        return {**{k: v for k, v in self.metrics.summary.to_json().items()
-                   if k != "branch_rms_with_missed"}, "n_parameters": self.n_parameters}
+        out = {**{k: v for k, v in self.metrics.summary.to_json().items()
+                  if k != "branch_rms_with_missed"}, "n_parameters": self.n_parameters}
+        if self.controlled is not None:
+            out["controlled"] = {k: v for k, v in self.controlled.to_json().items()
+                                 if k != "errors"}
+        return out
 
 
 @dataclass
@@ -73,6 +101,7 @@ class LoopResult:
     ranges: dict = field(default_factory=dict)
     seconds: float = 0.0
     states: dict | None = None                          # the samples' states (library)
+    control: ControlChoice | None = None                # the control as a known input
 
     @property
     def effect(self) -> dict | None:
@@ -102,22 +131,33 @@ def _n_parameters(model: UDE) -> int:
 def _stage(name, model, ds, data, ranges, ref, ref_source, ident) -> Stage:
     scales = np.asarray(augment(data, model.mech).y_scale)
     diagram, m = _evaluate(model, ds, ranges, scales, ref, ref_source)
-    return Stage(name, model, diagram, m, ident, scales, _n_parameters(model))
+    controlled = controlled_orbits(model, data, ds) if "control" in ident else None
+    return Stage(name, model, diagram, m, ident, scales, _n_parameters(model), data,
+                 controlled)
 
 
-def _identify(data, system, added, *, seed, bootstrap):
-    mech, ident = identify(data, system, effects=tuple(added), bootstrap=bootstrap, seed=seed)
+def _identify(ds, data, system, added, control, *, seed, bootstrap):
+    """(the data the model was identified on, the model with the effects ``added``, the
+    identification info): with ``control``, on the data carrying the control force, its
+    gain identified with the rest where unknown."""
+    if control is not None:
+        data, mech, ident = identify_with_control(ds, data, control, effects=tuple(added),
+                                                  bootstrap=bootstrap, seed=seed)
+    else:
+        mech, ident = identify(data, system, effects=tuple(added), bootstrap=bootstrap,
+                               seed=seed)
     ident["method"] = "equation error (least squares)"
     if added:
         ident["effects"] = [k for k, _ in added]
     bad = mech.unphysical()
     if bad:
         ident["unphysical"] = bad
-    return mech, ident
+    return data, mech, ident
 
 
-def _better(new: ModelMetrics, old: ModelMetrics, min_gain: float) -> bool:
-    new, old = new.summary, old.summary
+def _better(new, old, min_gain: float) -> bool:
+    """Does ``new`` improve on ``old`` (:attr:`Stage.judged` of each) as the loop keeps an
+    effect: fewer points missed, or as many and the branch error down by ``min_gain``."""
     if new.branch_rms is None:
         return False
     if new.missed < old.missed:
@@ -127,39 +167,48 @@ def _better(new: ModelMetrics, old: ModelMetrics, min_gain: float) -> bool:
     return new.branch_rms <= (1.0 - min_gain) * old.branch_rms
 
 
-def _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap) -> Stage:
+def _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap, control) -> Stage:
     # as `ude-fit fit` does: least squares bounded to physical signs
-    mech, ident = identify_mechanistic(data, system, bootstrap=bootstrap, seed=seed)
+    if control is not None:
+        data, mech, ident = identify_with_control(ds, data, control, bootstrap=bootstrap,
+                                                  seed=seed)
+    else:
+        mech, ident = identify_mechanistic(data, system, bootstrap=bootstrap, seed=seed)
     return _stage("mechanistic", UDE(mech), ds, data, ranges, ref, ref_source, ident)
 
 
 def refine(ds: OrbitDataset, system: str, add: list, *, reference=None, seed: int = 0,
-           bootstrap: int = 200, samples: int = 32, progress=None) -> LoopResult:
+           bootstrap: int = 200, samples: int = 32, progress=None,
+           control: ControlChoice | None = None) -> LoopResult:
     """Add the effects ``add`` ([(key, shape or None)]; a missing shape is chosen by
-    cross-validation) to the mechanistic model, refit, and compare diagrams."""
+    cross-validation) to the mechanistic model, refit, and compare diagrams (with
+    ``control``, the recorded control as a known input: see the module's docstring)."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
     data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
     say(event="stage", stage="mechanistic model")
-    before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap)
+    before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap, control)
     added = []
     for key, shape in add:
         if shape is None:
-            shape = choose_shape(data, system, key, added=tuple(added), seed=seed)
+            shape = choose_shape(before.data, system, key, added=tuple(added), seed=seed)
         added.append((key, shape))
     say(event="stage", stage="refined model: " + ", ".join(k for k, _ in added))
-    mech, ident = _identify(data, system, added, seed=seed, bootstrap=bootstrap)
-    after = _stage("refined", UDE(mech), ds, data, ranges, ref, ref_source, ident)
-    ex = explain(data, system, seed=seed, bootstrap=bootstrap)
+    used, mech, ident = _identify(ds, data, system, added, control, seed=seed,
+                                  bootstrap=bootstrap)
+    after = _stage("refined", UDE(mech), ds, used, ranges, ref, ref_source, ident)
+    ex = explain(before.data, system, seed=seed, bootstrap=bootstrap)
     return LoopResult(system, before, after, added, steps=[
         {"step": 1, "candidate": ", ".join(k for k, _ in added), "kept": True,
          "reason": "given with --add", "metrics": after.brief()}],
-        explanations=[ex], ranges=ranges, seconds=time.perf_counter() - t0, samples=samples)
+        explanations=[ex], ranges=ranges, seconds=time.perf_counter() - t0, samples=samples,
+        control=control)
 
 
 def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                min_gain: float = 0.1, reference=None, seed: int = 0, bootstrap: int = 200,
-               samples: int = 32, locate_shapes: bool = True, progress=None) -> LoopResult:
+               samples: int = 32, locate_shapes: bool = True, progress=None,
+               control: ControlChoice | None = None) -> LoopResult:
     """explain -> add the top-ranked effect -> refit, while it improves the diagram.
 
     With ``locate_shapes`` (the default) each step also locates the residual as shapes of
@@ -168,27 +217,32 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     to beat a catalogue term by ``min_gain`` (:func:`_margin`). When none of a step's candidates improves the diagram (or
     none is significant), a second stage locates each velocity's coefficient as a shape of a
     displacement (position-dependent damping) and tries the strongest. Without it the loop
-    tries the catalogue's candidates only."""
+    tries the catalogue's candidates only. With ``control`` the recorded control is a known
+    input (the module's docstring)."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
     data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
     say(event="stage", stage="mechanistic model")
-    before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap)
+    before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap, control)
     current, added, steps, explanations, locations = before, [], [], [], []
     S = states_of(data, system)
+    judged = "the diagram" if control is None else "the orbits under the recorded control"
     for step in range(1, max_effects + 1):
         say(event="stage", stage=f"explaining the residual (step {step})")
-        ex = explain(data, system, added=tuple(added), seed=seed, bootstrap=bootstrap)
+        ex = explain(current.data, system, added=tuple(added), seed=seed,
+                     bootstrap=bootstrap)
         explanations.append(ex)
         catalogue = ex.top() if ex.significant else None
         located = None
         if locate_shapes:
-            loc = describe_shapes(locate(data, system, added=tuple(added), seed=seed), S)
+            loc = describe_shapes(locate(current.data, system, added=tuple(added),
+                                         seed=seed), S)
             locations.append(loc)
             located = _located_candidates(loc, system) + [_spline_candidate(loc)]
         candidates, why_tried = _distinct([catalogue, *(located or [])]), None
         if not candidates and locate_shapes:
-            loc2, candidates = _coefficient_candidates(data, system, added, seed, S, set())
+            loc2, candidates = _coefficient_candidates(current.data, system, added, seed, S,
+                                                       set())
             if candidates:
                 locations[-1] = loc2
         if not candidates:
@@ -204,40 +258,40 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
             candidates = [top]
         best, rejected = _try_candidates(candidates, added, current, data, system, ds,
                                          ranges, ref, ref_source, seed, bootstrap,
-                                         min_gain, say)
-        if locate_shapes and not _better(best[3].metrics, current.metrics, min_gain):
+                                         min_gain, say, control)
+        if locate_shapes and not _better(best[3].judged, current.judged, min_gain):
             # second stage: a damping whose coefficient depends on a displacement (c(h) h')
             # is no shape of one state. Fitted beside the single states it shares what
             # they explain, so it is tried only once they have failed on the diagram
-            loc2, second = _coefficient_candidates(data, system, added, seed, S,
+            loc2, second = _coefficient_candidates(current.data, system, added, seed, S,
                                                    {c["key"] for c in candidates})
             if second:
                 locations[-1] = loc2
                 best2, rejected2 = _try_candidates(second, added, current, data, system, ds,
                                                    ranges, ref, ref_source, seed, bootstrap,
-                                                   min_gain, say)
+                                                   min_gain, say, control)
                 # `best` does not improve the diagram enough to be kept (that is why the
                 # second stage runs): one that does replaces it, else the better one is shown
-                if (_better(best2[3].metrics, current.metrics, min_gain)
-                        or _better(best2[3].metrics, best[3].metrics,
+                if (_better(best2[3].judged, current.judged, min_gain)
+                        or _better(best2[3].judged, best[3].judged,
                                    _margin(best2[0], best[0], min_gain))):
                     rejected += [best] + rejected2
                     best = best2
                 else:
                     rejected += [best2] + rejected2
         for cand, _, _, st in rejected:
-            why = ("does better on the diagram"
-                   if not _better(st.metrics, best[3].metrics, 0.0) else
-                   f"does as well on the diagram (within {min_gain:.0%}) with a name and no "
+            why = (f"does better on {judged}"
+                   if not _better(st.judged, best[3].judged, 0.0) else
+                   f"does as well on {judged} (within {min_gain:.0%}) with a name and no "
                    "more parameters")
             steps.append({"step": step, "candidate": cand["key"], "name": cand["name"],
                           "kind": cand["kind"], "shape": cand["shape"], "kept": False,
                           "significant": True, "reason": "another candidate of this "
                           f"step ({best[0]['key']}) {why}", "metrics": st.brief()})
         top, trial, ident, stage = best
-        keep = _better(stage.metrics, current.metrics, min_gain)
-        reason = ("improves the diagram" if keep else
-                  f"does not improve the diagram by {min_gain:.0%}")
+        keep = _better(stage.judged, current.judged, min_gain)
+        reason = (f"improves {judged}" if keep else
+                  f"does not improve {judged} by {min_gain:.0%}")
         if why_tried:
             reason = f"{why_tried}; {reason}"
         if "unphysical" in ident:
@@ -253,7 +307,8 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     # nothing kept: "after" is the mechanistic model itself
     return LoopResult(system, before, current, added, steps=steps,
                       explanations=explanations, locations=locations, ranges=ranges,
-                      seconds=time.perf_counter() - t0, states=S, samples=samples)
+                      seconds=time.perf_counter() - t0, states=S, samples=samples,
+                      control=control)
 
 
 def _coefficient_candidates(data, system, added, seed, S, exclude: set):
@@ -267,7 +322,7 @@ def _coefficient_candidates(data, system, added, seed, S, exclude: set):
 
 
 def _try_candidates(candidates, added, current, data, system, ds, ranges, ref, ref_source,
-                    seed, bootstrap, min_gain, say):
+                    seed, bootstrap, min_gain, say, control):
     """Refit and re-trace with each candidate; (the best trial, the others). Only the
     trials that improve on ``current`` as the loop keeps an effect compete (all of them
     when none does); the first of those (the catalogue's top, when it is significant and
@@ -277,13 +332,14 @@ def _try_candidates(candidates, added, current, data, system, ds, ranges, ref, r
     for cand in candidates:
         trial = added + [(cand["key"], cand["shape"])]
         say(event="stage", stage=f"refitting with {cand['name']}")
-        mech, ident = _identify(data, system, trial, seed=seed, bootstrap=bootstrap)
-        tried.append((cand, trial, ident, _stage("refined", UDE(mech), ds, data, ranges,
+        used, mech, ident = _identify(ds, data, system, trial, control, seed=seed,
+                                      bootstrap=bootstrap)
+        tried.append((cand, trial, ident, _stage("refined", UDE(mech), ds, used, ranges,
                                                  ref, ref_source, ident)))
-    pool = [t for t in tried if _better(t[3].metrics, current.metrics, min_gain)] or tried
+    pool = [t for t in tried if _better(t[3].judged, current.judged, min_gain)] or tried
     best = pool[0]
     for t in pool[1:]:
-        if _better(t[3].metrics, best[3].metrics, _margin(t[0], best[0], min_gain)):
+        if _better(t[3].judged, best[3].judged, _margin(t[0], best[0], min_gain)):
             best = t
     return best, [t for t in tried if t is not best]
 
@@ -352,29 +408,34 @@ def fit_udes(result: LoopResult, ds: OrbitDataset, opts, *, reference=None, prog
              seed: int = 0, bootstrap: int = 200):
     """A UDE on the mechanistic model and one on the refined model (same options); the
     first UDE's learnt correction is located and named as the residual was (the two routes,
-    :mod:`.routes`)."""
+    :mod:`.routes`). With the loop's control input each UDE takes it too, at its stage's
+    gain."""
     for which, stage in (("before", result.before), ("after", result.after)):
         if which == "after" and not result.added:
             result.ude["after"] = result.ude.get("before")
             continue
-        result.ude[which] = fit(ds, opts, reference=reference, progress=progress,
+        stage_opts = opts
+        if result.control is not None:
+            stage_opts = dataclasses.replace(
+                opts, control_input=True,
+                control_gain=stage.identification["control"]["gain"])
+        result.ude[which] = fit(ds, stage_opts, reference=reference, progress=progress,
                                 mechanistic=stage.model)
-    compare_ude_route(result, ds, result.ude["before"], reference=reference, seed=seed,
+    compare_ude_route(result, result.ude["before"], seed=seed,
                       bootstrap=bootstrap, progress=progress)
     return result
 
 
-def compare_ude_route(result: LoopResult, ds: OrbitDataset, ude_fit, *, reference=None,
-                      seed: int = 0, bootstrap: int = 200, progress=None):
+def compare_ude_route(result: LoopResult, ude_fit, *, seed: int = 0, bootstrap: int = 200,
+                      progress=None):
     """``result.routes``: the UDE route (``ude_fit``, a fit on the loop's mechanistic model)
     beside the loop's residual route; nothing when no UDE with a correction was kept."""
     if ude_fit.ude is None or ude_fit.ude.correction is None:
         return result
     say = progress or (lambda **kw: None)
     say(event="stage", stage="locating the UDE's learnt correction")
-    data = prepare(ds, result.system, reference, result.samples)[0]
     result.routes = compare_routes(
-        data, result.system, ude_fit.ude, seed=seed, bootstrap=bootstrap,
+        result.before.data, result.system, ude_fit.ude, seed=seed, bootstrap=bootstrap,
         residual_location=result.locations[0] if result.locations else None,
         residual_explanation=result.explanations[0] if result.explanations else None)
     return result
@@ -394,6 +455,7 @@ def metrics_document(result: LoopResult) -> dict:
         m.update(n_parameters=stage.n_parameters,
                  parameters=stage.identification.get("parameters", {}), points=points)
         m["effects"] = describe(stage.model.mech)
+        m["controlled"] = None if stage.controlled is None else stage.controlled.to_json()
         m["identification"] = {k: v for k, v in stage.identification.items()
                                if k not in ("parameters",)}
         if ude_fit is not None:

@@ -56,14 +56,29 @@ METHOD = [
     "quasi-steady model leaves out) rather than missing physics.", ""]
 
 
+def control_line(control: dict | None, refined: dict | None = None) -> list[str]:
+    """The sentence that says the recorded control was a known input, and its gain (and
+    the ``refined`` model's, identified with it, where that differs)."""
+    if not control:
+        return []
+    also = ""
+    if refined and refined["gain"] != control["gain"]:
+        also = f"; with the refined model's terms {refined['gain']:.4g}"
+    return [f"The recorded holding control is a known heave force in every identification "
+            f"and residual (gain {control['gain']:.4g} N per {control['unit']}, "
+            f"{control['gain_source']}{also}): a point held with some control is read as an "
+            "orbit of the controlled system.", ""]
+
+
 def render_explain(doc: dict, figures: dict) -> str:
     ex = doc["explanation"]
     L = [f"# ude-fit explain: {doc['system']}", "",
          f"Written by ude_fit {doc['version']} on {doc['written']}; command "
          f"`{doc['command']}`.", "",
          f"{doc['data']['points']} orbits from " + ", ".join(f"`{s}`" for s in
-                                                           doc["data"]["sources"]) + ".", "",
-         f"## Residual of the {doc['what']}", ""]
+                                                           doc["data"]["sources"]) + ".", ""]
+    L += control_line(doc.get("control"))
+    L += [f"## Residual of the {doc['what']}", ""]
     L += candidates_section(ex, doc["system"])
     L += METHOD
     for title, f in figures.items():
@@ -126,6 +141,8 @@ def render_loop(doc: dict, figures: dict) -> str:
          f"`{doc['command']}`.", "",
          f"{doc['data']['points']} orbits from " + ", ".join(f"`{s}`" for s in
                                                            doc["data"]["sources"]) + ".", ""]
+    L += control_line((b.get("identification") or {}).get("control"),
+                      (a.get("identification") or {}).get("control"))
     if eff:
         L += [f"**Effect added: {eff['name']}** (`{eff['key']}`, {eff['kind']}), "
               f"{eff['equation']} equation: {_coefs(eff)}"
@@ -148,6 +165,13 @@ def render_loop(doc: dict, figures: dict) -> str:
           _row("branch amplitude error, max", pct, "branch_max", cols),
           _row("missed points", lambda x: "—" if x is None else str(x), "missed", cols),
           _row("one-period trajectory error, RMS", pct, "trajectory_rms", cols)]
+    if b.get("controlled"):
+        ctl = [c.get("controlled") if c is not None else None for c in cols]
+        L.append("| orbits under the recorded control: amplitude error, RMS (what the loop "
+                 "judges) | " + " | ".join(pct((c or {}).get("branch_rms")) for c in ctl)
+                 + " |")
+        L.append("| orbits under the recorded control: missed points | " + " | ".join(
+            "—" if c is None else str(c["missed"]) for c in ctl) + " |")
     if system_kind(doc["system"]).autonomous:
         L.append(_row("Hopf airspeed (m/s)", location, "hopf", cols))
         L.append(_row("fold airspeed (m/s)", location, "fold", cols))

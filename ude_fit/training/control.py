@@ -19,10 +19,40 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._systems import system_kind
 from ..data.orbit import DataError, OrbitDataset
 from .identify import TrainingData
 
 FORCE_UNIT = "N"        # a control recorded in this unit is the force itself (gain 1)
+
+
+@dataclass(frozen=True)
+class ControlChoice:
+    """The user's choice to take the recorded holding control as a known input (``ude-fit
+    fit``, ``loop``, ``refine`` and ``pipeline`` with ``--control-input``): the system, and
+    the gain in N per unit of the record where the user gives it (None: 1 for a record in
+    N, else identified from the data)."""
+    system: str
+    gain: float | None = None
+
+    def __post_init__(self):
+        if not system_kind(self.system).autonomous:
+            raise ValueError("--control-input applies to --system flutter only (the "
+                             "oscillator's excitation already includes its control)")
+        g = self.gain
+        if g is not None and not (isinstance(g, (int, float)) and not isinstance(g, bool)
+                                  and math.isfinite(g) and g != 0):
+            raise ValueError(f"--control-gain must be a finite number other than 0, "
+                             f"not {g!r}")
+
+    @classmethod
+    def of(cls, system: str, control_input: bool, gain: float | None
+           ) -> "ControlChoice | None":
+        """The choice the flags make (None without --control-input); ValueError naming
+        the flag for a gain without --control-input or a bad one."""
+        if gain is not None and not control_input:
+            raise ValueError("--control-gain needs --control-input")
+        return cls(system, gain) if control_input else None
 
 
 @dataclass(frozen=True)

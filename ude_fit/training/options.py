@@ -17,6 +17,7 @@ from .._systems import system_kind
 from ..models.library import effect, effect_choice
 from ..models.mechanistic import SYSTEMS
 from ..models.parameter_file import MechanisticParameters
+from .control import ControlChoice
 from .penalties import Penalty
 
 APPROXIMATORS = ("nn", "gp")
@@ -329,17 +330,7 @@ class FitOptions:
                 raise ValueError(f"{flag} needs the starts trained one at a time (not "
                                  "--starts-together): each start takes its own rounds")
         _check_bool("control_input", self.control_input)
-        if self.control_input and not system_kind(self.system).autonomous:
-            raise ValueError("--control-input applies to --system flutter only (the "
-                             "oscillator's excitation already includes its control)")
-        if self.control_gain is not None:
-            g = self.control_gain
-            if not self.control_input:
-                raise ValueError("--control-gain needs --control-input")
-            if not (isinstance(g, (int, float)) and not isinstance(g, bool)
-                    and math.isfinite(g) and g != 0):
-                raise ValueError(f"--control-gain must be a finite number other than 0, "
-                                 f"not {g!r}")
+        ControlChoice.of(self.system, self.control_input, self.control_gain)
         effects = []
         for pair in self.mechanistic_effects:
             if not (isinstance(pair, (tuple, list)) and len(pair) == 2):
@@ -470,6 +461,11 @@ class FitOptions:
         """The known Hopf and fold airspeeds given, as {"hopf": V, "fold": V}."""
         return {k: v for k, v in (("hopf", self.reference_hopf),
                                   ("fold", self.reference_fold)) if v is not None}
+
+    def control(self) -> ControlChoice | None:
+        """The recorded control as a known input, as asked (None: the fit takes the
+        orbits as open-loop ones)."""
+        return ControlChoice.of(self.system, self.control_input, self.control_gain)
 
     def to_json(self) -> dict:
         d = asdict(self)
