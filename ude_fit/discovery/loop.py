@@ -39,12 +39,11 @@ from ..analysis.controlled import ControlledOrbits, controlled_orbits
 from ..analysis.diagram import _evaluate
 from ..analysis.metrics_type import ModelMetrics
 from ..data.orbit import OrbitDataset
-from ..fitting import fit, identify_mechanistic, prepare
+from ..fitting import fit, identify_mechanistic, identify_with_control, prepare
 from ..models.forms import state_parts
 from ..models.library import LIBRARY, STRUCTURAL, effect, states_of
 from ..models.refined import describe
 from ..models.ude import UDE
-from ..fitting import identify_with_control
 from ..training.control import ControlChoice
 from ..training.identify import TrainingData, augment, identify
 from .describe import VERY_STRONG, describe as describe_shapes, effect_fields
@@ -128,10 +127,10 @@ def _n_parameters(model: UDE) -> int:
     return n
 
 
-def _stage(name, model, ds, data, ranges, ref, ref_source, ident) -> Stage:
+def _stage(name, model, ds, data, ranges, ref, ref_source, ident, control) -> Stage:
     scales = np.asarray(augment(data, model.mech).y_scale)
     diagram, m = _evaluate(model, ds, ranges, scales, ref, ref_source)
-    controlled = controlled_orbits(model, data, ds) if "control" in ident else None
+    controlled = None if control is None else controlled_orbits(model, data, ds)
     return Stage(name, model, diagram, m, ident, scales, _n_parameters(model), data,
                  controlled)
 
@@ -174,7 +173,8 @@ def _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap, control)
                                                   seed=seed)
     else:
         mech, ident = identify_mechanistic(data, system, bootstrap=bootstrap, seed=seed)
-    return _stage("mechanistic", UDE(mech), ds, data, ranges, ref, ref_source, ident)
+    return _stage("mechanistic", UDE(mech), ds, data, ranges, ref, ref_source, ident,
+                  control)
 
 
 def refine(ds: OrbitDataset, system: str, add: list, *, reference=None, seed: int = 0,
@@ -196,7 +196,7 @@ def refine(ds: OrbitDataset, system: str, add: list, *, reference=None, seed: in
     say(event="stage", stage="refined model: " + ", ".join(k for k, _ in added))
     used, mech, ident = _identify(ds, data, system, added, control, seed=seed,
                                   bootstrap=bootstrap)
-    after = _stage("refined", UDE(mech), ds, used, ranges, ref, ref_source, ident)
+    after = _stage("refined", UDE(mech), ds, used, ranges, ref, ref_source, ident, control)
     ex = explain(before.data, system, seed=seed, bootstrap=bootstrap)
     return LoopResult(system, before, after, added, steps=[
         {"step": 1, "candidate": ", ".join(k for k, _ in added), "kept": True,
@@ -335,7 +335,7 @@ def _try_candidates(candidates, added, current, data, system, ds, ranges, ref, r
         used, mech, ident = _identify(ds, data, system, trial, control, seed=seed,
                                       bootstrap=bootstrap)
         tried.append((cand, trial, ident, _stage("refined", UDE(mech), ds, used, ranges,
-                                                 ref, ref_source, ident)))
+                                                 ref, ref_source, ident, control)))
     pool = [t for t in tried if _better(t[3].judged, current.judged, min_gain)] or tried
     best = pool[0]
     for t in pool[1:]:
