@@ -330,15 +330,20 @@ def identify_with_control(ds: OrbitDataset, data: TrainingData, choice: ControlC
         ident.get("bootstrap_std", {}).pop(INPUT_GAIN, None)
         ident["sources"].pop(INPUT_GAIN, None)
         ctrl = ControlInput(ctrl.unit, float(gain), ctrl.source)
-        ident["control"] = {**ctrl.to_json(), "gain_std_error": se}
+        ident["control"] = {**_control_record(ds, ctrl, mech), "gain_std_error": se}
     else:
         mech, ident = identify_mechanistic(with_control(data, ds, ctrl.gain), choice.system,
                                            given=given, effects=effects,
                                            bootstrap=bootstrap, seed=seed)
-        ident["control"] = ctrl.to_json()
-    ident["control"]["against_heave_stiffness"] = against_heave_stiffness(
-        ds, ctrl.gain, mech.values()["k_h"])
+        ident["control"] = _control_record(ds, ctrl, mech)
     return with_control(data, ds, ctrl.gain), mech, ident
+
+
+def _control_record(ds: OrbitDataset, ctrl: ControlInput, mech) -> dict:
+    """What metrics.json keeps of a fit's control input: unit, gain and its source, and
+    each point's control force against ``mech``'s heave spring."""
+    return {**ctrl.to_json(), "against_heave_stiffness": against_heave_stiffness(
+        ds, ctrl.gain, mech.values()["k_h"])}
 
 
 def parameter_sources(mech, ident: dict, given: MechanisticParameters | None) -> dict:
@@ -386,9 +391,7 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
                                 "mechanistic model needs its gain (--control-gain)")
             data = with_control(data, ds, ctrl.gain)
             ident = {"method": "given", "parameters": mechanistic.mech.parameters(),
-                     "std_error": {}, "control": {
-                         **ctrl.to_json(), "against_heave_stiffness": against_heave_stiffness(
-                             ds, ctrl.gain, mechanistic.mech.values()["k_h"])}}
+                     "std_error": {}, "control": _control_record(ds, ctrl, mechanistic.mech)}
         return _fit_on(mechanistic, ds, data, opts, ranges, ref, ref_source, say, t_start,
                        ident, verbose=progress is not None)
     say(event="stage", stage="mechanistic identification")

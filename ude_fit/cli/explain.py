@@ -6,8 +6,8 @@ from __future__ import annotations
 import os
 
 from ..discovery.explain import explain
-from ..fitting import identify_with_control
 from ..discovery.routes import learnt_correction
+from ..fitting import identify_with_control
 from ..model_file import load_model
 from ..report.files import provenance, write_json, write_text
 from ..report.loop_markdown import candidates_section, render_explain
