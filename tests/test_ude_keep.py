@@ -23,7 +23,7 @@ SPANS = {None: (19.0, 24.9)}
 class Start:
     """What choose_kept reads of a fit's start record."""
     start: int
-    metrics: ModelMetrics
+    judged: ModelMetrics
     adequate: bool = True
     completed: bool = True
 

@@ -8,7 +8,10 @@ Adequacy (the paper found single trainings often land in poor local minima): a s
 stability (nothing missed), its branch RMS error is below the mechanistic model's, and
 it is within ``adequacy_factor`` times the error of the best start that passes the
 other checks, or under ``adequacy_floor``, or under the data's own scatter about smooth
-branches (:func:`data_scatter`), whichever is largest. The kept start is the medoid of
+branches (:func:`data_scatter`), whichever is largest. With the recorded control as a known
+input every error compared is that of the model's orbits under the control at the points,
+where its diagram has an orbit of each point's stability (:func:`.analysis.controlled.judged`:
+the points are orbits of the controlled system, the diagram is the open-loop one). The kept start is the medoid of
 three or more adequate starts by their Hopf and fold locations outside the measured range,
 else the adequate one with the smallest branch error (:mod:`.analysis.keep`); if none is
 adequate, the one with the fewest missed points and then the smallest error, and the result
@@ -27,6 +30,7 @@ import numpy as np
 from ._precision import require_float64
 from .analysis.backbone import BackboneFit, backbone_of
 from .analysis.adequacy import error_bar, judge_starts, needs_fold
+from .analysis.controlled import ControlledOrbits, controlled_orbits, judged
 from .analysis.diagram import _evaluate, diagram_ranges
 from .analysis.keep import KeptStart, choose_kept
 from .analysis.metrics import fold_points
@@ -76,6 +80,8 @@ class StartRecord:
     diagram: dict | None = None
     guide_rounds: GuideRepair | None = None   # where its diagram broke the rule
     criticality: HopfCriticality | None = None  # its Hopf point's (self-excited data)
+    # with the control as an input: its orbits under the recorded control at the points
+    controlled: ControlledOrbits | None = None
 
     @property
     def ok(self) -> bool:
@@ -85,6 +91,11 @@ class StartRecord:
     def completed(self) -> bool:
         """It trained, and its diagram has an orbit at some measured point."""
         return self.ok and self.metrics.summary.branch_rms is not None
+
+    @property
+    def judged(self) -> ModelMetrics | None:
+        """The figures its adequacy and the kept start's choice read (:func:`judged`)."""
+        return None if self.metrics is None else judged(self.metrics, self.controlled)
 
     def to_json(self) -> dict:
         """The record as metrics.json keeps it: no model, the scalar training info, the
@@ -107,7 +118,22 @@ class StartRecord:
             out["guide_rounds"] = self.guide_rounds.to_json()
         if self.criticality is not None:
             out["hopf_criticality"] = self.criticality.to_json()
+        if self.controlled is not None:
+            out["controlled"] = _controlled_record(self.metrics, self.controlled,
+                                                   per_point=False)
         return out
+
+
+def _controlled_record(m: ModelMetrics, controlled: ControlledOrbits, *,
+                       per_point: bool = True) -> dict:
+    """What metrics.json keeps of a model's orbits under the recorded control: their
+    figures (per point too, with ``per_point``) and the figures it was judged by."""
+    c = controlled.to_json()
+    if not per_point:
+        c = {k: v for k, v in c.items() if k not in ("errors", "amplitudes")}
+    j = judged(m, controlled).summary
+    return {**c, "judged": {"branch_rms": j.branch_rms, "branch_max": j.branch_max,
+                            "missed": j.missed}}
 
 
 @dataclass
@@ -131,6 +157,13 @@ class FitResult:
     guides: dict | None = None      # the one-fold curve and guide orbits, if trained on
     margins: BackboneMargins | None = None    # the data's stability margins, if trained on
     seconds: float = 0.0
+    # with the control as an input: the mechanistic model's orbits under it at the points
+    mechanistic_controlled: ControlledOrbits | None = None
+
+    @property
+    def mechanistic_judged(self) -> ModelMetrics:
+        """The mechanistic model's figures as the adequacy reads them (:func:`judged`)."""
+        return judged(self.mechanistic_metrics, self.mechanistic_controlled)
 
     @property
     def adequate(self) -> int:
@@ -156,11 +189,16 @@ class FitResult:
             "training": opts.training if opts.approximator == "nn" else "accelerations",
             "data": self.data,
             "mechanistic": {**self.mechanistic_metrics.to_json(),
+                            **self._controlled(self.mechanistic_metrics,
+                                               self.mechanistic_controlled),
                             "parameters": ident["parameters"],
                             "identification": {k: v for k, v in ident.items()
                                                if k not in ("parameters", "std_error")},
                             "std_error": ident["std_error"]},
-            "ude": None if best is None else {**best.metrics.to_json(), "start": best.start,
+            "ude": None if best is None else {**best.metrics.to_json(),
+                                              **self._controlled(best.metrics,
+                                                                 best.controlled),
+                                              "start": best.start,
                                               "adequate": best.adequate},
             "starts": {"requested": opts.starts,
                        "completed": sum(s.completed for s in self.starts),
@@ -172,9 +210,13 @@ class FitResult:
                        "kept": None if best is None else best.start,
                        "kept_by": None if self.kept_by is None else self.kept_by.to_json(),
                        "criterion": {"missed": 0, "below_mechanistic": True,
+                                     "judged_by": ("the diagram"
+                                                   if self.mechanistic_controlled is None
+                                                   else "the orbits under the recorded "
+                                                   "control"),
                                      # the bar where the mechanistic model misses every point
                                      "below_backbone": error_bar(
-                                         self.mechanistic_metrics,
+                                         self.mechanistic_judged,
                                          _baseline_rms(self.backbone))[1] == "backbone",
                                      "factor_of_best": opts.adequacy_factor,
                                      "floor": opts.adequacy_floor,
@@ -188,6 +230,10 @@ class FitResult:
             "ranges": self.ranges,
             "seconds": self.seconds,
         }
+
+    @staticmethod
+    def _controlled(m: ModelMetrics, controlled: ControlledOrbits | None) -> dict:
+        return {} if controlled is None else {"controlled": _controlled_record(m, controlled)}
 
 
 # ---------------------------------------------------------------------------------------
@@ -418,6 +464,11 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
         ident = {"method": "given", "parameters": mech_model.mech.parameters(),
                  "std_error": {}}
     data = augment(data, mech_model.mech)
+    # with the control as an input (the data carry it), a model is judged by its orbits
+    # under the control at the measured points: on these data, before any guide orbit
+    measured = data
+    controlled = ((lambda model: controlled_orbits(model, measured, ds))
+                  if opts.control() is not None else (lambda model: None))
     margins = None
     if opts.train.backbone_margins:
         margins = backbone_margins(ds, mech_model, opts.train.stability_margin)
@@ -431,6 +482,7 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
         data, guides = _guided(ds, data, mech_model.mech, opts)
     say(event="stage", stage="mechanistic diagram")
     mech_diag, mech_m = _evaluate(mech_model, ds, ranges, scales, ref, ref_source)
+    mech_c = controlled(mech_model)
     say(event="model", which="mechanistic", metrics=mech_m)
 
     keys = jax.random.split(jax.random.PRNGKey(opts.seed), opts.starts)
@@ -457,6 +509,7 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
             rec.model, rec.diagram = model, diag
             if ds.kind.autonomous:
                 rec.criticality = hopf_criticality(model, ranges["v_range"])
+            rec.controlled = controlled(model)
         rec.seconds = train_seconds[k] + time.perf_counter() - t0
         say(event="start_done", start=k + 1, record=rec)
         starts.append(rec)
@@ -464,8 +517,9 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
     scatter = data_scatter(ds)
     fold_needed = needs_fold(ds)
     backbone = backbone_metrics(ds)
-    for s, a in zip(starts, judge_starts([s.metrics for s in starts], mech_m, opts, scatter,
-                                         fold_needed, _baseline_rms(backbone))):
+    for s, a in zip(starts, judge_starts([s.judged for s in starts], judged(mech_m, mech_c),
+                                         opts, scatter, fold_needed,
+                                         _baseline_rms(backbone))):
         s.adequate = a
     kept_by = choose_kept(starts, ds.parameter_spans())
     best = next((s for s in starts if s.start == kept_by.start), None)
@@ -488,7 +542,7 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                      kept=best, kept_by=kept_by, data=data_record,
                      fold_required=fold_needed,
                      backbone=backbone, guides=guides, margins=margins,
-                     seconds=time.perf_counter() - t_start)
+                     seconds=time.perf_counter() - t_start, mechanistic_controlled=mech_c)
 
 
 def _guided(ds: OrbitDataset, data: TrainingData, mech, opts: FitOptions):

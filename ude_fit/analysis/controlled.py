@@ -19,10 +19,20 @@ moves along it); the one nearest the measured orbit is taken. It is the model's 
 closes; its heave
 first-harmonic amplitude is then compared with the measured one as the branch error is
 (:mod:`.metrics`). A point whose orbit does not close is *missed*.
+
+What a model of such points is judged by (:func:`judged`, the fit's adequacy and the
+discovery loop's rule alike) takes from each yardstick what it can say: the amplitude error
+from the orbit under the control, and whether the model has an orbit of the measured
+stability there from its open-loop diagram. A point's stability label is the open-loop
+system's (the lab labels a point by the orbit the control holds without changing it), and
+an orbit under a known forcing has no stability to compare: a damped linear model has a
+forced orbit under any control, so without the diagram's half a model with no limit cycle
+at all would meet every point.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -33,6 +43,7 @@ import numpy as np
 
 from ..data.orbit import OrbitDataset
 from ..models.flow import rk4_orbit
+from .metrics_type import BranchErrors, ModelMetrics, PointError
 from ..training.identify import TrainingData, augment
 from ..training.options import TrainConfig
 
@@ -45,24 +56,54 @@ CLOSED = 1e-6
 
 @dataclass(frozen=True)
 class ControlledOrbits:
-    """Every point's controlled orbit against the measured one: the heave amplitude error
-    over the largest measured amplitude (None where missed), and its RMS and max over the
-    points met."""
-    errors: tuple
-    missed: int
-    branch_rms: float | None
-    branch_max: float | None
+    """Every point's orbit under its recorded control against the measured one: per point
+    the orbit's heave amplitude and its error over the largest measured amplitude (missed
+    where it does not close), and their summary."""
+    errors: BranchErrors
 
-    @classmethod
-    def of(cls, errors: list) -> "ControlledOrbits":
-        met = np.array([e for e in errors if e is not None], float)
-        return cls(tuple(errors), sum(e is None for e in errors),
-                   float(np.sqrt(np.mean(met ** 2))) if met.size else None,
-                   float(met.max()) if met.size else None)
+    @property
+    def points(self) -> tuple[PointError, ...]:
+        return self.errors.points
+
+    @property
+    def missed(self) -> int:
+        return self.errors.summary.missed
+
+    @property
+    def branch_rms(self) -> float | None:
+        return self.errors.summary.branch_rms
+
+    @property
+    def branch_max(self) -> float | None:
+        return self.errors.summary.branch_max
 
     def to_json(self) -> dict:
         return {"branch_rms": self.branch_rms, "branch_max": self.branch_max,
-                "missed": self.missed, "errors": list(self.errors)}
+                "missed": self.missed, "errors": [p.error for p in self.points],
+                "amplitudes": [p.model for p in self.points]}
+
+
+def judged(metrics: ModelMetrics, controlled: ControlledOrbits | None) -> ModelMetrics:
+    """The figures a model is judged by: its diagram's (``metrics``), or with the control
+    as an input (``controlled``: its orbits under the recorded control at the same points)
+    each point met where the diagram has an orbit of the measured stability there *and*
+    the orbit under the control closes, its error that orbit's (the module's docstring).
+    The Hopf point and the folds stay the diagram's."""
+    if controlled is None:
+        return metrics
+    if len(controlled.points) != len(metrics.points):
+        raise ValueError(f"{len(controlled.points)} orbits under the control for "
+                         f"{len(metrics.points)} points")
+    points = []
+    for p, c in zip(metrics.points, controlled.points):
+        if p.missed or c.missed:
+            points.append(PointError(p.parameter, p.frequency, p.measured, p.stable))
+        else:
+            points.append(PointError(p.parameter, p.frequency, p.measured, p.stable,
+                                     model=c.model, error=c.error,
+                                     model_stable=p.model_stable))
+    a_max = max(p.measured for p in metrics.points)
+    return dataclasses.replace(metrics, errors=BranchErrors.of(points, a_max))
 
 
 def _residual(model, z, ys, period, drive, scale, sw, sub: int, closure_weight: float):
@@ -130,11 +171,14 @@ def controlled_orbits(model, data: TrainingData, ds: OrbitDataset) -> Controlled
     a_max = float(ds.amplitudes().max())
     n = sims.shape[1]
     phase = np.exp(-2j * np.pi * np.arange(n) / n)
-    errors = []
-    for o, sim, c in zip(ds.orbits, sims, closures):
+    points = []
+    for o, sim, c in zip(ds.orbits, sims, closures, strict=True):
+        measured = dict(parameter=o.parameter, frequency=o.frequency, measured=o.amplitude,
+                        stable=o.stable)
         if not (np.all(np.isfinite(sim)) and np.sqrt(np.sum(c ** 2)) <= CLOSED):
-            errors.append(None)
+            points.append(PointError(**measured))
             continue
         amplitude = 2.0 * abs(np.sum(sim[:, 0] * phase)) / n
-        errors.append(abs(amplitude - o.amplitude) / a_max)
-    return ControlledOrbits.of(errors)
+        points.append(PointError(**measured, model=float(amplitude),
+                                 error=float(abs(amplitude - o.amplitude) / a_max)))
+    return ControlledOrbits(BranchErrors.of(points, a_max))

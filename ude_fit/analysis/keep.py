@@ -86,22 +86,24 @@ class KeptStart:
 
 
 def _error(m: ModelMetrics) -> float:
-    return m.summary.branch_rms
+    # a completed start judged under the control may close no orbit at all: no error
+    return np.inf if m.summary.branch_rms is None else m.summary.branch_rms
 
 
 def choose_kept(starts: Sequence, spans: Mapping[str | None, tuple[float, float]]
                 ) -> KeptStart:
     """The kept start among ``starts`` (records with ``start``, ``completed``, ``adequate``
-    and ``metrics``), ``spans`` being the measured parameter range of each branch family
+    and ``judged``, the figures the start is judged by: its diagram's, or with the control
+    as an input those under it, :func:`.controlled.judged`), ``spans`` being the measured parameter range of each branch family
     (:meth:`ude_fit.data.orbit.OrbitDataset.parameter_spans`)."""
     done = [s for s in starts if s.completed]
     if not done:
         return KeptStart(None, "none")
-    adequate = sorted((s for s in done if s.adequate), key=lambda s: _error(s.metrics))
+    adequate = sorted((s for s in done if s.adequate), key=lambda s: _error(s.judged))
     if not adequate:
-        best = min(done, key=lambda s: (s.metrics.summary.missed, _error(s.metrics)))
+        best = min(done, key=lambda s: (s.judged.summary.missed, _error(s.judged)))
         return KeptStart(best.start, "not adequate")
-    marks = [s.metrics.landmarks(spans) for s in adequate]
+    marks = [s.judged.landmarks(spans) for s in adequate]
     # the landmarks every adequate start has, in the first one's order
     names = tuple(n for n in marks[0] if all(n in m for m in marks[1:]))
     if len(adequate) < CONSENSUS_STARTS or not names:

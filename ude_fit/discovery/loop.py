@@ -11,7 +11,8 @@ to the mechanistic model's. ``close_loop`` decides what to add itself:
    (branch RMS error down by at least ``min_gain`` of its value, no more points missed,
    or fewer missed): an effect a statistical test likes but the dynamics do not need is
    not kept (with the control as an input, the model's orbits under the recorded control
-   are compared with the points instead, :mod:`~ude_fit.analysis.controlled`);
+   are compared with the points instead, where its diagram has an orbit of each point's
+   stability, :mod:`~ude_fit.analysis.controlled`);
 4. repeat 2-3 on the refined model's residual until nothing significant is left, the
    top candidate does not improve the diagram, or ``max_effects`` are in.
 
@@ -24,7 +25,8 @@ every residual is taken with it: a point held with some control is an orbit of t
 controlled system, and without it the control's force would be read as missing physics.
 The rule that keeps an effect then compares each model's orbits under the recorded control
 with the points (:attr:`Stage.judged`): the open-loop diagram is as far from such points as
-the control moved them, whichever model is right about the open-loop system.
+the control moved them, whichever model is right about the open-loop system. Whether the
+model has an orbit of each point's stability there is still read from its diagram.
 """
 
 from __future__ import annotations
@@ -35,9 +37,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..analysis.controlled import ControlledOrbits, controlled_orbits
+from ..analysis.controlled import ControlledOrbits, controlled_orbits, judged
 from ..analysis.diagram import _evaluate
-from ..analysis.metrics_type import ModelMetrics
+from ..analysis.metrics_type import BranchSummary, ModelMetrics
 from ..data.orbit import OrbitDataset
 from ..fitting import fit, identify_mechanistic, identify_with_control, prepare
 from ..models.forms import state_parts
@@ -68,12 +70,13 @@ class Stage:
     controlled: ControlledOrbits | None = None
 
     @property
-    def judged(self):
-        """What the loop's rule compares (branch error, missed points): the model's orbits
-        under the recorded control where the control is an input (a point held with
-        control is off the open-loop diagram by what the control did), else its
-        open-loop diagram."""
-        return self.metrics.summary if self.controlled is None else self.controlled
+    def judged(self) -> BranchSummary:
+        """What the loop's rule compares (branch error, missed points): where the control
+        is an input, each point's orbit under the recorded control (a point held with
+        control is off the open-loop diagram by what the control did) where the diagram
+        has an orbit of the point's stability (:func:`~ude_fit.analysis.controlled.judged`),
+        else the open-loop diagram's."""
+        return judged(self.metrics, self.controlled).summary
 
     def brief(self) -> dict:
         """The figures a step's record keeps."""
@@ -81,7 +84,9 @@ class Stage:
                   if k != "branch_rms_with_missed"}, "n_parameters": self.n_parameters}
         if self.controlled is not None:
             out["controlled"] = {k: v for k, v in self.controlled.to_json().items()
-                                 if k != "errors"}
+                                 if k not in ("errors", "amplitudes")}
+            out["judged"] = {"branch_rms": self.judged.branch_rms,
+                             "missed": self.judged.missed}
         return out
 
 
@@ -226,7 +231,8 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap, control)
     current, added, steps, explanations, locations = before, [], [], [], []
     S = states_of(data, system)
-    judged = "the diagram" if control is None else "the orbits under the recorded control"
+    yardstick = ("the diagram" if control is None else
+                 "the orbits under the recorded control")
     for step in range(1, max_effects + 1):
         say(event="stage", stage=f"explaining the residual (step {step})")
         ex = explain(current.data, system, added=tuple(added), seed=seed,
@@ -280,9 +286,9 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                 else:
                     rejected += [best2] + rejected2
         for cand, _, _, st in rejected:
-            why = (f"does better on {judged}"
+            why = (f"does better on {yardstick}"
                    if not _better(st.judged, best[3].judged, 0.0) else
-                   f"does as well on {judged} (within {min_gain:.0%}) with a name and no "
+                   f"does as well on {yardstick} (within {min_gain:.0%}) with a name and no "
                    "more parameters")
             steps.append({"step": step, "candidate": cand["key"], "name": cand["name"],
                           "kind": cand["kind"], "shape": cand["shape"], "kept": False,
@@ -290,8 +296,8 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                           f"step ({best[0]['key']}) {why}", "metrics": st.brief()})
         top, trial, ident, stage = best
         keep = _better(stage.judged, current.judged, min_gain)
-        reason = (f"improves {judged}" if keep else
-                  f"does not improve {judged} by {min_gain:.0%}")
+        reason = (f"improves {yardstick}" if keep else
+                  f"does not improve {yardstick} by {min_gain:.0%}")
         if why_tried:
             reason = f"{why_tried}; {reason}"
         if "unphysical" in ident:

@@ -163,6 +163,37 @@ def _holding(d: dict, control: dict | None) -> list[str]:
     return L + [""]
 
 
+def _controlled_rows(mech: dict, ude: dict | None) -> list[str]:
+    """With the control as an input: both models' orbits under the recorded control
+    against the points, and the figures the adequacy judged (analysis/controlled.py)."""
+    if not mech.get("controlled"):
+        return []
+    c = lambda m: (m or {}).get("controlled") or {}
+    n = lambda x: "—" if x is None else str(x)
+    return [f"| orbits under the recorded control: amplitude error, RMS | "
+            f"{pct(c(mech).get('branch_rms'))} | {pct(c(ude).get('branch_rms'))} |",
+            f"| orbits under the recorded control: missed (no closed orbit) | "
+            f"{n(c(mech).get('missed'))} | {n(c(ude).get('missed'))} |",
+            f"| judged (under the control, where the diagram has the point's stability): "
+            f"RMS, missed | {_judged_cell(c(mech))} | {_judged_cell(c(ude))} |"]
+
+
+def _judged_cell(c: dict | None) -> str:
+    j = (c or {}).get("judged")
+    return "—" if not j else f"{pct(j['branch_rms'])}, {j['missed']}"
+
+
+def _judged_by_control(mech: dict) -> list[str]:
+    if not mech.get("controlled"):
+        return []
+    return ["With the recorded control as a known input, the errors this check compares "
+            "are those of each model's orbits under the control at the measured points "
+            "(the points are orbits of the controlled system); a point counts as met where "
+            "that orbit closes and the diagram has an orbit of the point's stability there "
+            "(the stability is the open-loop system's). The table's first columns are the "
+            "open-loop diagram's; the last, what was judged.", ""]
+
+
 def render(metrics: dict, figures: dict) -> str:
     """Markdown text from ``metrics`` (as written to metrics.json) and figure file names."""
     mech, ude = metrics["mechanistic"], metrics.get("ude")
@@ -192,6 +223,7 @@ def render(metrics: dict, figures: dict) -> str:
     for (label, f), k in zip(rows, keys):
         a, b = g(k)
         L.append(f"| {label} | {f(a)} | {f(b)} |")
+    L += _controlled_rows(mech, ude)
     if kind.autonomous:
         L.append(f"| Hopf airspeed ({unit}) | {location(mech.get('hopf'))} | "
                  f"{location((ude or {}).get('hopf'))} |")
@@ -241,16 +273,21 @@ def render(metrics: dict, figures: dict) -> str:
           + ("; and, as the data has stable and unstable orbits, at least one fold (the "
              "branch from the Hopf point turns there to become the stable one)."
              if st["criterion"].get("fold_required") else "."), "",
+          *_judged_by_control(mech),
           "| start | status | seconds | branch RMS | max | missed | folds (at parameter @ mm) | "
-          "Hopf | fold | adequate | Hopf criticality, dA²/dV |",
-          "|---|---|---|---|---|---|---|---|---|---|---|"]
+          "Hopf | fold | adequate | Hopf criticality, dA²/dV |"
+          + (" judged under the control: RMS, missed |" if mech.get("controlled") else ""),
+          "|---|---|---|---|---|---|---|---|---|---|---|"
+          + ("---|" if mech.get("controlled") else "")]
     for r in st["records"]:
         m = r.get("metrics") or {}
         L.append(f"| {r['start']} | {r['status']} | {r['seconds']:.1f} | "
                  f"{pct(m.get('branch_rms'))} | {pct(m.get('branch_max'))} | "
                  f"{m.get('missed', '—')} | {_fold_cell(m)} | "
                  f"{location(m.get('hopf'))} | {location(m.get('fold'))} | "
-                 f"{'yes' if r.get('adequate') else 'no'} | {_criticality_cell(r)} |")
+                 f"{'yes' if r.get('adequate') else 'no'} | {_criticality_cell(r)} |"
+                 + (f" {_judged_cell(r.get('controlled'))} |" if mech.get("controlled")
+                    else ""))
     slope = d.get("unstable_amplitude2_slope")
     if any(r.get("hopf_criticality") for r in st["records"]):
         L.append("\nHopf criticality: *sub* (unstable orbits where the equilibrium is stable) or "
