@@ -32,6 +32,12 @@ def run(args, argv) -> int:
     print(f"branch RMS error: mechanistic {pct(res.mechanistic_metrics.summary.branch_rms)}, "
           f"UDE {pct(kept.metrics.summary.branch_rms) if kept else 'no model'}; adequate "
           f"starts {res.adequate}/{opts.starts}")
+    if res.mechanistic_controlled is not None:
+        print(f"judged under the recorded control: mechanistic "
+              f"{pct(res.mechanistic_judged.summary.branch_rms)} "
+              f"({res.mechanistic_judged.summary.missed} missed), UDE "
+              + (f"{pct(kept.judged.summary.branch_rms)} ({kept.judged.summary.missed} missed)"
+                 if kept else "no model"))
     if res.ude is None:
         print(f"ude-fit: {res.why_no_ude()} (see report.md)", file=sys.stderr)
         return 1
