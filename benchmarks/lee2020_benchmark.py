@@ -62,7 +62,7 @@ def one_seed(data: str, seed: int, extra: list[str]) -> dict:
     starts = [{"start": r["start"], "adequate": r["adequate"],
                **({k: r["metrics"][k] for k in ("branch_rms", "missed", "fold_count")}
                   | {"hopf": (r["metrics"]["hopf"] or {}).get("model")}
-                  | _guide_rounds(r) | _where(r)
+                  | _guide_rounds(r) | _where(r) | _judged(r)
                   if r.get("metrics") else {"status": r["status"]})}
               for r in m["starts"]["records"]]
     return {"seed": seed, "exit": rc, "adequate": m["starts"]["adequate"],
@@ -73,7 +73,18 @@ def one_seed(data: str, seed: int, extra: list[str]) -> dict:
             "data_scatter": m["data"]["scatter"],
             "ude_branch_rms": (m["ude"] or {}).get("branch_rms"),
             "mechanistic_branch_rms": m["mechanistic"]["branch_rms"],
+            "judged_by": m["starts"]["criterion"].get("judged_by"),
+            **{f"mechanistic_{k}": v for k, v in _judged(m["mechanistic"]).items()},
             "wall_s": round(wall, 1), "starts": starts}
+
+
+def _judged(r: dict) -> dict:
+    """What the adequacy read of a model fitted with the control as an input: its branch
+    RMS and missed points under the recorded control, where its diagram has each point's
+    stability (nothing without the option)."""
+    judged = (r.get("controlled") or {}).get("judged")
+    return {} if judged is None else {"judged_branch_rms": judged["branch_rms"],
+                                      "judged_missed": judged["missed"]}
 
 
 def _where(r: dict) -> dict:

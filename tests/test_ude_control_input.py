@@ -191,8 +191,8 @@ def test_the_fit_with_the_control_judges_its_starts_under_the_control(fits):
     the control meet the invasively held points at least 5 times closer than its open-loop
     diagram does (measured 0.12 % against 2.17 %) and at least 10 times closer than the
     mechanistic model's under the same control (2.27 %), so it is adequate by what the data
-    measured; metrics.json and the report carry both yardsticks. Without the control
-    nothing of this is there."""
+    measured; metrics.json, the report and what ``ude-fit fit`` prints carry both
+    yardsticks. Without the control nothing of this is there."""
     r = fits["loose+control"][0]
     doc = r.to_json()
     (rec,) = doc["starts"]["records"]
@@ -216,6 +216,12 @@ def test_the_fit_with_the_control_judges_its_starts_under_the_control(fits):
                    "options": r.options.to_json()}, {})
     assert "| orbits under the recorded control: amplitude error, RMS |" in text
     assert "judged under the control: RMS, missed |" in text
+    from ude_fit.cli.fit import summary
+    said = summary(r, 1)
+    assert said[-1] == (f"judged under the recorded control: mechanistic "
+                        f"{100 * mech['judged']['branch_rms']:.2f} % (0 missed), UDE "
+                        f"{100 * c['branch_rms']:.2f} % (0 missed)"), said
+    assert len(summary(fits["loose"][0], 1)) == 1
 
 
 def test_the_control_is_reported_against_the_heave_spring(fits):

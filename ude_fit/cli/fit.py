@@ -21,23 +21,30 @@ def add_parser(sub) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress on the terminal")
 
 
+def summary(res, starts: int) -> list[str]:
+    """The lines the command prints about the fit ``res`` of ``starts`` starts: the branch
+    errors and the adequate starts, and, with the control as an input, the figures the
+    adequacy read (each model's orbits under the recorded control)."""
+    kept = res.kept
+    lines = [f"branch RMS error: mechanistic {pct(res.mechanistic_metrics.summary.branch_rms)}, "
+             f"UDE {pct(kept.metrics.summary.branch_rms) if kept else 'no model'}; adequate "
+             f"starts {res.adequate}/{starts}"]
+    if res.mechanistic_controlled is not None:
+        judged = lambda m: f"{pct(m.summary.branch_rms)} ({m.summary.missed} missed)"
+        lines.append(f"judged under the recorded control: mechanistic "
+                     f"{judged(res.mechanistic_judged)}, UDE "
+                     + (judged(kept.judged) if kept else "no model"))
+    return lines
+
+
 def run(args, argv) -> int:
     opts, ds, out, progress = start(args, fit_options)
     progress.say(f"{len(ds)} orbits loaded ({args.system}); fitting")
     res = fit(ds, opts, progress=progress)
     metrics = write_fit(out, ds, res, provenance(command_line(argv), args.data))
-    kept = res.kept
     print(f"wrote {out}/: metrics.json, report.md, " + ", ".join(metrics["figures"].values())
-          + ", mechanistic.eqx" + (", ude.eqx" if kept else ""))
-    print(f"branch RMS error: mechanistic {pct(res.mechanistic_metrics.summary.branch_rms)}, "
-          f"UDE {pct(kept.metrics.summary.branch_rms) if kept else 'no model'}; adequate "
-          f"starts {res.adequate}/{opts.starts}")
-    if res.mechanistic_controlled is not None:
-        print(f"judged under the recorded control: mechanistic "
-              f"{pct(res.mechanistic_judged.summary.branch_rms)} "
-              f"({res.mechanistic_judged.summary.missed} missed), UDE "
-              + (f"{pct(kept.judged.summary.branch_rms)} ({kept.judged.summary.missed} missed)"
-                 if kept else "no model"))
+          + ", mechanistic.eqx" + (", ude.eqx" if res.kept else ""))
+    print("\n".join(summary(res, opts.starts)))
     if res.ude is None:
         print(f"ude-fit: {res.why_no_ude()} (see report.md)", file=sys.stderr)
         return 1
