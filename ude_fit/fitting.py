@@ -11,11 +11,11 @@ other checks, or under ``adequacy_floor``, or under the data's own scatter about
 branches (:func:`data_scatter`), whichever is largest. With the recorded control as a known
 input every error compared is that of the model's orbits under the control at the points,
 where its diagram has an orbit of each point's stability (:func:`.analysis.controlled.judged`:
-the points are orbits of the controlled system, the diagram is the open-loop one). The kept start is the medoid of
-three or more adequate starts by their Hopf and fold locations outside the measured range,
-else the adequate one with the smallest branch error (:mod:`.analysis.keep`); if none is
-adequate, the one with the fewest missed points and then the smallest error, and the result
-says so.
+the points are orbits of the controlled system, the diagram is the open-loop one). The
+kept start is the medoid of three or more adequate starts by their Hopf and fold locations
+outside the measured range, else the adequate one with the smallest branch error
+(:mod:`.analysis.keep`); if none is adequate, the one with the fewest missed points and
+then the smallest error, and the result says so.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import numpy as np
 from ._precision import require_float64
 from .analysis.backbone import BackboneFit, backbone_of
 from .analysis.adequacy import error_bar, judge_starts, needs_fold
-from .analysis.controlled import ControlledOrbits, controlled_orbits, judged
+from .analysis.controlled import ControlledOrbits, controlled_orbits, judged, yardstick
 from .analysis.diagram import _evaluate, diagram_ranges
 from .analysis.keep import KeptStart, choose_kept
 from .analysis.metrics import fold_points
@@ -210,10 +210,8 @@ class FitResult:
                        "kept": None if best is None else best.start,
                        "kept_by": None if self.kept_by is None else self.kept_by.to_json(),
                        "criterion": {"missed": 0, "below_mechanistic": True,
-                                     "judged_by": ("the diagram"
-                                                   if self.mechanistic_controlled is None
-                                                   else "the orbits under the recorded "
-                                                   "control"),
+                                     "judged_by": yardstick(
+                                         self.mechanistic_controlled is not None),
                                      # the bar where the mechanistic model misses every point
                                      "below_backbone": error_bar(
                                          self.mechanistic_judged,

@@ -83,6 +83,11 @@ class ControlledOrbits:
                 "amplitudes": [p.model for p in self.points]}
 
 
+def yardstick(control_is_input: bool) -> str:
+    """What :func:`judged` compares with the points, in words (records and reports)."""
+    return "the orbits under the recorded control" if control_is_input else "the diagram"
+
+
 def judged(metrics: ModelMetrics, controlled: ControlledOrbits | None) -> ModelMetrics:
     """The figures a model is judged by: its diagram's (``metrics``), or with the control
     as an input (``controlled``: its orbits under the recorded control at the same points)

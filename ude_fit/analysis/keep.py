@@ -94,7 +94,8 @@ def choose_kept(starts: Sequence, spans: Mapping[str | None, tuple[float, float]
                 ) -> KeptStart:
     """The kept start among ``starts`` (records with ``start``, ``completed``, ``adequate``
     and ``judged``, the figures the start is judged by: its diagram's, or with the control
-    as an input those under it, :func:`.controlled.judged`), ``spans`` being the measured parameter range of each branch family
+    as an input those under it, :func:`.controlled.judged`), ``spans`` being the measured
+    parameter range of each branch family
     (:meth:`ude_fit.data.orbit.OrbitDataset.parameter_spans`)."""
     done = [s for s in starts if s.completed]
     if not done:

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..analysis.controlled import ControlledOrbits, controlled_orbits, judged
+from ..analysis.controlled import ControlledOrbits, controlled_orbits, judged, yardstick
 from ..analysis.diagram import _evaluate
 from ..analysis.metrics_type import BranchSummary, ModelMetrics
 from ..data.orbit import OrbitDataset
@@ -219,8 +219,8 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     With ``locate_shapes`` (the default) each step also locates the residual as shapes of
     single states (:mod:`.locate`), describes the strongest (:mod:`.describe`) and tries its
     form beside the catalogue's top candidate; the diagram decides, a generic class having
-    to beat a catalogue term by ``min_gain`` (:func:`_margin`). When none of a step's candidates improves the diagram (or
-    none is significant), a second stage locates each velocity's coefficient as a shape of a
+    to beat a catalogue term by ``min_gain`` (:func:`_margin`). When none of a step's
+    candidates improves the diagram (or none is significant), a second stage locates each velocity's coefficient as a shape of a
     displacement (position-dependent damping) and tries the strongest. Without it the loop
     tries the catalogue's candidates only. With ``control`` the recorded control is a known
     input (the module's docstring)."""
@@ -231,8 +231,7 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap, control)
     current, added, steps, explanations, locations = before, [], [], [], []
     S = states_of(data, system)
-    yardstick = ("the diagram" if control is None else
-                 "the orbits under the recorded control")
+    compared = yardstick(control is not None)
     for step in range(1, max_effects + 1):
         say(event="stage", stage=f"explaining the residual (step {step})")
         ex = explain(current.data, system, added=tuple(added), seed=seed,
@@ -286,9 +285,9 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                 else:
                     rejected += [best2] + rejected2
         for cand, _, _, st in rejected:
-            why = (f"does better on {yardstick}"
+            why = (f"does better on {compared}"
                    if not _better(st.judged, best[3].judged, 0.0) else
-                   f"does as well on {yardstick} (within {min_gain:.0%}) with a name and no "
+                   f"does as well on {compared} (within {min_gain:.0%}) with a name and no "
                    "more parameters")
             steps.append({"step": step, "candidate": cand["key"], "name": cand["name"],
                           "kind": cand["kind"], "shape": cand["shape"], "kept": False,
@@ -296,8 +295,8 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
                           f"step ({best[0]['key']}) {why}", "metrics": st.brief()})
         top, trial, ident, stage = best
         keep = _better(stage.judged, current.judged, min_gain)
-        reason = (f"improves {yardstick}" if keep else
-                  f"does not improve {yardstick} by {min_gain:.0%}")
+        reason = (f"improves {compared}" if keep else
+                  f"does not improve {compared} by {min_gain:.0%}")
         if why_tried:
             reason = f"{why_tried}; {reason}"
         if "unphysical" in ident:
