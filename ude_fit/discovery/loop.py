@@ -220,10 +220,10 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     single states (:mod:`.locate`), describes the strongest (:mod:`.describe`) and tries its
     form beside the catalogue's top candidate; the diagram decides, a generic class having
     to beat a catalogue term by ``min_gain`` (:func:`_margin`). When none of a step's
-    candidates improves the diagram (or none is significant), a second stage locates each velocity's coefficient as a shape of a
-    displacement (position-dependent damping) and tries the strongest. Without it the loop
-    tries the catalogue's candidates only. With ``control`` the recorded control is a known
-    input (the module's docstring)."""
+    candidates improves the diagram (or none is significant), a second stage locates each
+    velocity's coefficient as a shape of a displacement (position-dependent damping) and
+    tries the strongest. Without it the loop tries the catalogue's candidates only. With
+    ``control`` the recorded control is a known input (the module's docstring)."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
     data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
