@@ -142,13 +142,14 @@ def test_the_fit_moves_each_orbit_by_its_logging_error(truth):
                  _with_errors(training_data(_logged_at(ds, e)), ds, sigma)):
         params = orbit_unknowns(data, autonomous=True)
         assert set(params) == {"dy0", "dT", "dP"}
-        params, _ = minimize(loss, params, (UDE(mech), data), adam_steps=0, lbfgs_steps=2000,
+        params, _ = minimize(loss, params, (UDE(mech), data), adam_steps=0, lbfgs_steps=4000,
                              lr=1e-3)
         found.append(sigma * np.asarray(params["dP"]))
     moved = found[1] - found[0]
     assert np.all(np.sign(moved) == -np.sign(e)), moved
-    # each error at least half recovered, and most of the errors' RMS (measured 0.41 of
-    # the worst error and 0.18 of the RMS left over at 2000 steps)
+    # each error at least half recovered, and most of the errors' RMS (measured at 4000
+    # steps: 0.28 of the worst error and 0.18 of the RMS left over; at 2000 steps one
+    # machine's rounding left 0.48 and 0.31, short of the minimum, another's 0.41 and 0.18)
     assert np.all(np.abs(moved + e) < 0.5 * np.abs(e)), moved
     assert np.sqrt(np.mean((moved + e) ** 2)) < 0.3 * np.sqrt(np.mean(e ** 2)), moved
 

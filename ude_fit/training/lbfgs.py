@@ -26,7 +26,12 @@ lee2020/model2, 2026-12-02: no step of the fits' L-BFGS runs needed it).
 The first direction is the gradient scaled to a step of at most unit length. A non-finite
 loss on the line counts as a step too long. Where no step along the L-BFGS direction lowers
 the loss, the memory is cleared and the gradient tried; where that fails too, no step that
-the loss or its slope can resolve is left and the run stops there.
+the loss or its slope can resolve is left and the run stops there. The run also stops after
+:data:`MEMORY` steps in a row that reach neither a loss nor a gradient norm lower than any
+before: at a minimum to the arithmetic's rounding the accepted steps only circle among
+rounded points (measured on a quadratic: the rounding of the loss's last digit passes for a
+decrease, and points come back exactly), where the loss falling or the gradient shrinking,
+as it does on every step of a run still on its way, keeps it going.
 """
 
 from __future__ import annotations
@@ -218,7 +223,8 @@ def run(evaluate: Callable, x: np.ndarray, steps: int,
     if not _finite(value, grad):
         return RunResult(x, np.nan, "loss is not finite at L-BFGS step 1", 0, evaluations)
     pairs: deque = deque(maxlen=MEMORY)
-    k = approximate = 0
+    k = approximate = stalled = 0
+    lowest_value, lowest_norm = value, float(np.linalg.norm(grad))
     while k < steps:
         d = _direction(grad, pairs)
         if not float(grad @ d) < 0.0:          # rounding made it no descent direction
@@ -240,8 +246,13 @@ def run(evaluate: Callable, x: np.ndarray, steps: int,
         if sy > 1e-12 * float(np.linalg.norm(s)) * float(np.linalg.norm(y)):
             pairs.append((s, y, 1.0 / sy))
         x, value, grad = x + s, ls.value, ls.grad
+        norm = float(np.linalg.norm(grad))
+        stalled = 0 if value < lowest_value or norm < lowest_norm else stalled + 1
+        lowest_value, lowest_norm = min(lowest_value, value), min(lowest_norm, norm)
         if k % 10 == 0 or k == steps:
             on_step(k, value)
+        if stalled >= MEMORY:                  # circling at the rounding: nothing left to gain
+            break
     if k < steps:
         on_step(k, value)
     return RunResult(x, value, None, k, evaluations, approximate)
