@@ -87,6 +87,12 @@ class RigClient:
     def close(self) -> None:
         self._client.close()
 
+    def set_timeout(self, seconds: float, retries: int) -> None:
+        """How long an answer may take, and how often a request is sent again after one
+        that took longer (from the next request on; pymodbus reads both per request)."""
+        self._client.comm_params.timeout_connect = seconds
+        self._client.retries = self._client.transaction.retries = retries
+
     def __enter__(self):
         self.connect()
         return self

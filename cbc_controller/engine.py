@@ -4,7 +4,8 @@ Every tick of a fixed-rate loop (deadline scheduling, default 200 Hz) it writes
 the heartbeat, reads the status block, suspends the plan on a latched fault, and
 pulls the sample ring while a record is being taken. In lockstep (the rig's
 status says so) a tick also advances the rig a fixed slice of rig time, so a
-campaign runs as fast as the machine allows and is reproducible.
+campaign runs as fast as the machine allows and is reproducible (a slow answer is
+then the machine's load, not a lost link: `lockstep_link`).
 
 Lost link: the engine reconnects (bounded wait), takes control again, re-applies
 every setting it had written, and throws `RigRestarted` into the plan.
@@ -39,6 +40,14 @@ class LoopOptions:
     reconnect_s: float = 30.0         # how long to keep trying a lost rig
     max_settle_rig_s: float = 120.0   # a Settle that takes longer is answered with timed_out
     watchdog_s: float = 2.0           # watchdog timeout the engine asks the rig for
+
+
+def lockstep_link(opt: LoopOptions) -> tuple[float, int]:
+    """The answer timeout and retries for a rig in lockstep. Its answers wait on the
+    simulation, whose pace is the machine's load, not the link's health: a late answer is
+    waited for as long as a lost rig would be, and never asked for twice (an `advance`
+    sent again would advance the rig twice, and the campaign would no longer repeat)."""
+    return opt.reconnect_s, 0
 
 
 @dataclass
@@ -98,6 +107,8 @@ class Engine:
         self.rig.write(control=1)
         self.rig.write(watchdog_timeout=self.opt.watchdog_s)
         self.lockstep = bool(self.rig.get("status") & LOCKSTEP_BIT)
+        if self.lockstep:
+            self.rig.set_timeout(*lockstep_link(self.opt))
         self._next_deadline = time.monotonic()
 
     def close(self) -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from . import __version__
 from .client import RigClient, RigError
-from .engine import CampaignAbort, Engine, LoopOptions
+from .engine import CampaignAbort, Engine, LoopOptions, lockstep_link
 from .log import CampaignWriter
 from .messages import PlanContext
 from .plans import plan_for
@@ -50,7 +50,8 @@ class EmbeddedRig:
                 "--host", "127.0.0.1", "--port", "0",
                 "--seed", str(rig.get("seed", config["campaign"].get("seed", 0))),
                 "--noise", str(rig.get("noise", 0.0))]
-        if lockstep or (time_scale is None and rig.get("lockstep", False)):
+        self.lockstep = lockstep or (time_scale is None and rig.get("lockstep", False))
+        if self.lockstep:
             args.append("--lockstep")
         else:
             scale = time_scale if time_scale is not None else rig.get("time_scale", 20.0)
@@ -148,6 +149,8 @@ def run_campaign(config: dict, text: str, out: Path, *, rig_url: str | None = No
             client = RigClient(rig_url, timeout=2.0, retries=1)
         except ValueError as exc:
             raise RunError(str(exc), 2) from None
+        if embedded is not None and embedded.lockstep:     # known before the first answer
+            client.set_timeout(*lockstep_link(loop))
         subscribers = []
         if progress:
             tasks = config["parameter"]["values"] if config["campaign"]["rig"] == "flutter" \

@@ -131,6 +131,31 @@ def test_rig_restart_mid_campaign_reconnects_and_goes_on(tmp_path, truth, rig_pr
     assert "interrupted" in texts                   # the interrupted airspeed is marked
 
 
+def test_a_lockstep_rig_slow_to_answer_is_waited_for_and_the_campaign_repeats(
+        tmp_path, rig_process):
+    """A lockstep rig stopped (SIGSTOP) mid-campaign for longer than a real-time link's
+    timeout and retry: a busy machine, not a lost link. The controller waits, sends
+    nothing twice, and logs the points of the same campaign run against an unstopped rig
+    with the same seed, bit for bit, with no link event."""
+    points = {}
+    for paused in (False, True):
+        rig = rig_process("--rig", "flutter", "--lockstep", "--seed", "3")
+        out = tmp_path / f"paused-{paused}.h5"
+        c = Controller(str(campaign(tmp_path, "[20.5]")), "--rig",
+                       f"tcp://127.0.0.1:{rig.port}", "--out", str(out))
+        if paused:
+            c.wait_for("[1 points")
+            rig.proc.send_signal(signal.SIGSTOP)
+            time.sleep(6.0)                     # > 2 s timeout x (1 + 1 retry)
+            rig.proc.send_signal(signal.SIGCONT)
+        assert c.finish() == 0, c.err.decode()[-2000:]
+        camp = read_campaign(str(out))
+        assert not [e for e in camp.events if "link" in str(e)], camp.events
+        points[paused] = [(p["key"], p["amplitude"], p["frequency"], p["stable"], p["rig_time"])
+                          for p in camp.points]
+    assert len(points[False]) == 2 and points[True] == points[False]
+
+
 def test_amplitude_trip_is_logged_and_the_campaign_goes_on(tmp_path, truth):
     # the trip acts on |x|: the stable cycle at 18.5 m/s peaks near 73 mm (63 mm first
     # harmonic on a 9 mm DC), the one at 20.5 m/s near 86 mm; trip between them

@@ -57,7 +57,8 @@ def test_fleet_completes_after_losing_a_node_every_member_once(scenario):
     assert len(ids) == len(set(ids))
     status = {r["member"]: r["status"] for r in recs}
     assert status.pop("small-burnt-s3") == "failed"
-    assert set(status.values()) == {"completed"}, status
+    errors = {r["member"]: r["error"] for r in recs if r["status"] != "completed"}
+    assert set(status.values()) == {"completed"}, (status, errors)
     # the member that was running on the second node when it was killed was run again
     # elsewhere, and is in the index once, completed (its points: the next test)
     nodes, lost = scenario["nodes"], scenario["lost_member"]
@@ -96,6 +97,7 @@ def test_every_member_equals_the_same_member_run_alone(scenario, tmp_path):
 def test_index_reports_agreement_with_the_truth(scenario):
     idx = _index(scenario["work"] / "A")
     for name in ("small-clean-s3", "osc23-clean-s3", "osc22-clean-s3"):
+        assert idx[name]["status"] == "completed", (name, idx[name]["error"])
         truth = idx[name]["truth"]
         assert truth["known"] and truth["unmatched"] == 0, truth
         assert truth["compared"] == idx[name]["points"]
