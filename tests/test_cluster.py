@@ -18,7 +18,7 @@ from tests.ray_cluster import (LONG_AIRSPEEDS, REPO, loopback_namespace_command,
 
 pytest.importorskip("ray", reason="Ray is the optional extra `cluster`")
 
-pytestmark = pytest.mark.minutes(4)   # CI order: tests/conftest.py
+pytestmark = pytest.mark.minutes(4.5)   # CI order: tests/conftest.py
 
 
 @pytest.fixture(scope="module")

@@ -28,7 +28,7 @@ from tests.conftest import SLOWER_MACHINE
 
 # CI order (tests/conftest.py): the compose and demo tests' campaigns and fits, 6-9 min beside
 # the other worker
-pytestmark = pytest.mark.minutes(7)
+pytestmark = pytest.mark.minutes(9)
 
 REPO = Path(__file__).resolve().parents[1]
 COMPOSE = REPO / "docker-compose.yml"

@@ -21,6 +21,8 @@ from ude_fit.training.train import train_ude
 
 jax.config.update("jax_enable_x64", True)
 
+pytestmark = pytest.mark.minutes(2)   # CI order: tests/conftest.py
+
 CFG = TrainConfig().for_system("flutter")
 
 

@@ -22,6 +22,8 @@ from ude_fit.training.rounds import broken_constraints, enforce_constraints
 
 jax.config.update("jax_enable_x64", True)
 
+pytestmark = pytest.mark.minutes(2)   # CI order: tests/conftest.py
+
 
 @pytest.fixture(scope="module")
 def problem(tmp_path_factory):

@@ -28,7 +28,7 @@ from ude_fit.training.identify import INPUT_GAIN
 
 import jax  # noqa: E402  (after the imports above, before any array)
 
-pytestmark = pytest.mark.minutes(3)   # CI order: tests/conftest.py
+pytestmark = pytest.mark.minutes(11)   # CI order: tests/conftest.py
 
 jax.config.update("jax_enable_x64", True)
 

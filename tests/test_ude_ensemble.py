@@ -18,6 +18,8 @@ import jax.numpy as jnp  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
+pytestmark = pytest.mark.minutes(2)   # CI order: tests/conftest.py
+
 
 def _weights(model: UDE) -> list[np.ndarray]:
     return [np.asarray(x) for x in jax.tree_util.tree_leaves(

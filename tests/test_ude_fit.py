@@ -26,7 +26,7 @@ from ude_fit.training.optimise import minimize
 
 import jax  # noqa: E402  (after the imports above, before any array)
 
-pytestmark = pytest.mark.minutes(4)   # CI order: tests/conftest.py
+pytestmark = pytest.mark.minutes(12)   # CI order: tests/conftest.py
 
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 

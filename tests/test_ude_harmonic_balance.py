@@ -27,6 +27,8 @@ import jax  # noqa: E402  (after the imports above, before any array)
 
 jax.config.update("jax_enable_x64", True)
 
+pytestmark = pytest.mark.minutes(3)   # CI order: tests/conftest.py
+
 
 def _circle_guess(system: Circles, a: float, V: float):
     """Unknowns near the orbit of heave amplitude ``a``: the circle's first harmonic through

@@ -25,6 +25,8 @@ import jax  # noqa: E402  (after the imports above, before any array)
 
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
+pytestmark = pytest.mark.minutes(3.5)   # CI order: tests/conftest.py
+
 PLUGIN = str(Path(__file__).parent / "plugins" / "heave_position_damping.py") + ":force"
 AIRSPEEDS = (19.0, 20.0, 21.0, 22.0, 23.0, 24.0, 25.5)
 

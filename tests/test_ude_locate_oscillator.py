@@ -23,6 +23,8 @@ import jax  # noqa: E402  (after the imports above, before any array)
 
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
+pytestmark = pytest.mark.minutes(2.5)   # CI order: tests/conftest.py
+
 PLUGIN = str(Path(__file__).parent / "plugins" / "oscillator" / "fast_damper.py") + ":force"
 
 

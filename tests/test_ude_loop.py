@@ -27,7 +27,7 @@ import jax  # noqa: E402  (after the imports above, before any array)
 
 jax.config.update("jax_enable_x64", True)       # ude_fit computes in float64 (see ude_fit docs)
 
-pytestmark = pytest.mark.minutes(9)   # CI order: tests/conftest.py
+pytestmark = pytest.mark.minutes(10)   # CI order: tests/conftest.py
 
 SIGMA = 0.02
 HELD = 0.2       # a point the board could not hold on its orbit is not logged (as in CBC)

@@ -35,7 +35,7 @@ PER_FREQ = 5
 STARTS = 5
 # two datasets' fits, 5 starts each: 2-3 min beside the other CI worker (CI order:
 # tests/conftest.py)
-pytestmark = pytest.mark.minutes(3)
+pytestmark = pytest.mark.minutes(4)
 
 
 @pytest.fixture(scope="module")

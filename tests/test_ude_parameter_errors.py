@@ -23,6 +23,8 @@ from ude_fit.training.parameter_errors import parameter_errors
 
 jax.config.update("jax_enable_x64", True)
 
+pytestmark = pytest.mark.minutes(2.5)   # CI order: tests/conftest.py
+
 CFG = TrainConfig().for_system("flutter")
 AIRSPEEDS = (19.0, 21.0, 23.0, 25.0)
 # the airspeeds the campaign below is logged at, off the true ones by these (m/s)
