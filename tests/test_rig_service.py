@@ -3,6 +3,7 @@ lockstep determinism, and the CLI's handling of bad input."""
 
 from __future__ import annotations
 
+import signal
 import socket
 import subprocess
 import sys
@@ -120,6 +121,30 @@ def test_only_one_client_holds_control(rig_process):
     time.sleep(0.3)
     assert a.get("control") == 0
     a.close()
+
+
+def test_requests_a_client_sent_before_it_went_do_not_keep_control(rig_process):
+    """A controller that gives up on a write the rig has not read yet (here the rig is
+    stopped, as a busy machine may stop it) and leaves: the write is served after the
+    disconnect, and control still goes back. In lockstep nothing else would free it (the
+    watchdog counts simulated time, which only a controller advances)."""
+    rig = rig_process("--rig", "flutter", "--lockstep")
+    a = RigClient(rig.url, timeout=0.5, retries=0)
+    a.connect()
+    a.write(control=1)
+    rig.proc.send_signal(signal.SIGSTOP)
+    try:
+        with pytest.raises(RigError):
+            a.write(heartbeat=5)                # unanswered: the rig is stopped
+        a.close()
+    finally:
+        rig.proc.send_signal(signal.SIGCONT)
+    time.sleep(0.3)
+    b = connect(rig.url)
+    b.write(control=1)
+    assert b.get("control") == 1
+    assert b.get("heartbeat") == 5              # the write was served all the same
+    b.close()
 
 
 # ---------------------------------------------------------------- protocol errors ---

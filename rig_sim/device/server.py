@@ -75,6 +75,7 @@ def _handler_class(registers: RigRegisters, addressing: Addressing):
             self._pending: collections.deque = collections.deque()
             self._rtu = self.comm_params.comm_type == CommType.SERIAL
             self._last_rx = 0.0
+            self._gone = False          # disconnected, with requests still queued
 
         def datagram_received(self, data, addr):
             if self.comm_params.handle_local_echo:
@@ -156,7 +157,13 @@ def _handler_class(registers: RigRegisters, addressing: Addressing):
         async def handle_request(self):
             if not self._pending:
                 return
-            pdu, addr, answer = self._pending.popleft()
+            try:
+                await self._serve(*self._pending.popleft())
+            finally:
+                if self._gone and not self._pending:
+                    registers.release_if_owner(self)
+
+        async def _serve(self, pdu, addr, answer):
             self.last_pdu, self.last_addr = pdu, addr
             if isinstance(pdu, ReadWriteMultipleRegistersRequest) and _fc23_counts_ok(pdu):
                 # FC23 writes before it reads; an illegal read part must not write
@@ -184,8 +191,15 @@ def _handler_class(registers: RigRegisters, addressing: Addressing):
 
         def callback_disconnected(self, exc):
             # a client that goes away gives control back; if it left the rig armed,
-            # the watchdog will disarm it (nobody feeds the heartbeat any more)
-            registers.release_if_owner(self)
+            # the watchdog will disarm it (nobody feeds the heartbeat any more). The
+            # requests it sent before it went are served first, in order, and control
+            # goes back after them: released before them, a write among them claimed
+            # the rig for a connection that no longer exists, and in lockstep (where
+            # the watchdog runs on simulated time, which only a controller advances)
+            # nobody could take control again
+            self._gone = True
+            if not self._pending:
+                registers.release_if_owner(self)
             super().callback_disconnected(exc)
 
     return RigRequestHandler
