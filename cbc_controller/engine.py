@@ -89,6 +89,7 @@ class Engine:
         self._next_deadline = 0.0
         self._config_periods = 0
         self._status: dict = {}
+        self._link_lost_since_arm = False
 
     # ------------------------------------------------------------------ documents
     def emit(self, kind: str, doc: dict) -> None:
@@ -159,6 +160,10 @@ class Engine:
         self.armed = False
         self.emit("fault", {"code": code, "text": text, "rig_time": self.rig_time()})
         self._call(lambda: self.rig.write(command=3))       # reset the latch; the plan re-arms
+        if code == M.FAULT_WATCHDOG and self._link_lost_since_arm:
+            # nobody fed the heartbeat while the link was down: the lost link's own doing,
+            # which the plan answers as it answers the lost link, by repeating the point
+            raise RigRestarted(f"{text} while the link was down")
         raise RigFault(code, text)
 
     def rig_time(self) -> float:
@@ -187,6 +192,7 @@ class Engine:
                 self.armed = False
                 # the new rig's period counter starts afresh: count from it
                 self._config_periods = self.rig.get("periods")
+                self._link_lost_since_arm = True
                 self.emit("link", {"event": "restored", "time": time.time()})
                 return
             except RigError:
@@ -209,8 +215,9 @@ class Engine:
                 if exc.code != 4:                   # 4: refused because a fault is latched
                     raise
                 code = self._call(lambda: self.rig.get("fault_code"))
-                self._handle_fault(code)            # raises RigFault for the plan
+                self._handle_fault(code)            # raises RigFault (or RigRestarted)
             self.armed = True
+            self._link_lost_since_arm = False
             return None
         if isinstance(msg, Disarm):
             self._call(lambda: self.rig.write(command=2))

@@ -156,6 +156,29 @@ def test_a_lockstep_rig_slow_to_answer_is_waited_for_and_the_campaign_repeats(
     assert len(points[False]) == 2 and points[True] == points[False]
 
 
+def test_a_real_time_rig_stopped_longer_than_its_watchdog_has_the_airspeed_repeated(
+        tmp_path, truth, rig_process):
+    """In real time a rig stopped for 6 s loses the link, and its watchdog trips (nobody
+    could feed the heartbeat). The trip is logged, and the airspeed is measured again as
+    after any lost link, not abandoned as for a fault of the rig's own."""
+    rig = rig_process("--rig", "flutter", "--time-scale", "20", "--seed", "3")
+    path = campaign(tmp_path, "[20.5]")
+    path.write_text(path.read_text().replace("lockstep = true", "time_scale = 20.0"))
+    out = tmp_path / "stopped.h5"
+    c = Controller(str(path), "--rig", f"tcp://127.0.0.1:{rig.port}", "--out", str(out))
+    c.wait_for("[1 points")
+    rig.proc.send_signal(signal.SIGSTOP)
+    time.sleep(6.0)
+    rig.proc.send_signal(signal.SIGCONT)
+    assert c.finish() == 0, c.err.decode()[-2000:]
+    camp = _check_points(out, truth, n_expected=2)
+    assert {(p["parameter"], bool(p["stable"])) for p in camp.points} == {(20.5, True),
+                                                                          (20.5, False)}
+    texts = " ".join(str(e) for e in camp.events)
+    assert "lost" in texts and "restored" in texts, camp.events
+    assert "abandoned" not in texts, camp.events
+
+
 def test_amplitude_trip_is_logged_and_the_campaign_goes_on(tmp_path, truth):
     # the trip acts on |x|: the stable cycle at 18.5 m/s peaks near 73 mm (63 mm first
     # harmonic on a 9 mm DC), the one at 20.5 m/s near 86 mm; trip between them

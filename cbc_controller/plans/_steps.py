@@ -60,7 +60,8 @@ def retry(step, tries: int):
 
 class PointLog:
     """The points a plan emits, numbered on from those already in the file; a key already
-    there (a resumed campaign) is not emitted again."""
+    there (a resumed campaign, or a point measured before a lost link made the plan repeat
+    its airspeed) is not emitted again."""
 
     def __init__(self, ctx):
         self.done = set(ctx.done or ())
@@ -72,6 +73,7 @@ class PointLog:
         if key in self.done:
             return False
         yield Emit("point", make_doc(self.index))
+        self.done.add(key)
         self.index += 1
         return True
 

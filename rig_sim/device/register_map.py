@@ -53,7 +53,8 @@ STATUS_BITS = {
     "armed": 0, "running": 1, "fault": 2, "controlled": 3, "lockstep": 4,
     "phase_locked": 5, "saturating": 6, "estimate_ready": 7,
 }
-FAULT_CODES = {0: "none", 1: "amplitude trip", 2: "watchdog (host heartbeat lost)",
+FAULT_WATCHDOG = 2            # the host's heartbeat stopped (firmware/layout.py: the same code)
+FAULT_CODES = {0: "none", 1: "amplitude trip", FAULT_WATCHDOG: "watchdog (host heartbeat lost)",
                3: "state diverged"}
 COMMANDS = {1: "arm", 2: "disarm", 3: "reset fault", 4: "reset averages"}
 CONTROL_VALUES = {0: "free / release", 1: "held by you / claim", 2: "held by another client"}
