@@ -93,6 +93,11 @@ class RigClient:
         self._client.comm_params.timeout_connect = seconds
         self._client.retries = self._client.transaction.retries = retries
 
+    @property
+    def link(self) -> tuple[float, int]:
+        """The answer timeout and retries in force (what `set_timeout` last set)."""
+        return self._client.comm_params.timeout_connect, self._client.transaction.retries
+
     def __enter__(self):
         self.connect()
         return self

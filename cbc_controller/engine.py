@@ -5,7 +5,7 @@ the heartbeat, reads the status block, suspends the plan on a latched fault, and
 pulls the sample ring while a record is being taken. In lockstep (the rig's
 status says so) a tick also advances the rig a fixed slice of rig time, so a
 campaign runs as fast as the machine allows and is reproducible (a slow answer is
-then the machine's load, not a lost link: `lockstep_link`).
+then the machine's load, not a lost link: `link_for`).
 
 Lost link: the engine reconnects (bounded wait), takes control again, re-applies
 every setting it had written, and throws `RigRestarted` into the plan.
@@ -42,12 +42,18 @@ class LoopOptions:
     watchdog_s: float = 2.0           # watchdog timeout the engine asks the rig for
 
 
-def lockstep_link(opt: LoopOptions) -> tuple[float, int]:
-    """The answer timeout and retries for a rig in lockstep. Its answers wait on the
-    simulation, whose pace is the machine's load, not the link's health: a late answer is
-    waited for as long as a lost rig would be, and never asked for twice (an `advance`
-    sent again would advance the rig twice, and the campaign would no longer repeat)."""
-    return opt.reconnect_s, 0
+REALTIME_ANSWER_S = 2.0     # a real-time rig answers within a tick or two; 2 s is a lost link
+REALTIME_RETRIES = 1        # ...and a request lost once is sent again
+
+
+def link_for(opt: LoopOptions, lockstep: bool) -> tuple[float, int]:
+    """The answer timeout and retries for a rig, by its clock. A real-time rig that does not
+    answer within `REALTIME_ANSWER_S` is treated as lost (the engine then reconnects). A
+    lockstep rig's answers wait on the simulation, whose pace is the machine's load, not
+    the link's health: a late answer is waited for as long as a lost rig would be, and never
+    asked for twice (an `advance` sent again would advance the rig twice, and the campaign
+    would no longer repeat)."""
+    return (opt.reconnect_s, 0) if lockstep else (REALTIME_ANSWER_S, REALTIME_RETRIES)
 
 
 @dataclass
@@ -108,8 +114,8 @@ class Engine:
         self.rig.write(control=1)
         self.rig.write(watchdog_timeout=self.opt.watchdog_s)
         self.lockstep = bool(self.rig.get("status") & LOCKSTEP_BIT)
-        if self.lockstep:
-            self.rig.set_timeout(*lockstep_link(self.opt))
+        # on every take of control: a rig back on the same address may keep the other clock
+        self.rig.set_timeout(*link_for(self.opt, self.lockstep))
         self._next_deadline = time.monotonic()
 
     def close(self) -> None:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from . import __version__
 from .client import RigClient, RigError
-from .engine import CampaignAbort, Engine, LoopOptions, lockstep_link
+from .engine import CampaignAbort, Engine, LoopOptions, link_for
 from .log import CampaignWriter
 from .messages import PlanContext
 from .plans import plan_for
@@ -146,11 +146,10 @@ def run_campaign(config: dict, text: str, out: Path, *, rig_url: str | None = No
             embedded = EmbeddedRig(config, time_scale, lockstep)
             rig_url = embedded.url
         try:
-            client = RigClient(rig_url, timeout=2.0, retries=1)
+            # an embedded rig's clock is known before its first answer; another's, after it
+            client = RigClient(rig_url, *link_for(loop, embedded is not None and embedded.lockstep))
         except ValueError as exc:
             raise RunError(str(exc), 2) from None
-        if embedded is not None and embedded.lockstep:     # known before the first answer
-            client.set_timeout(*lockstep_link(loop))
         subscribers = []
         if progress:
             tasks = config["parameter"]["values"] if config["campaign"]["rig"] == "flutter" \

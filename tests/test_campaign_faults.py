@@ -131,6 +131,30 @@ def test_rig_restart_mid_campaign_reconnects_and_goes_on(tmp_path, truth, rig_pr
     assert "interrupted" in texts                   # the interrupted airspeed is marked
 
 
+def test_the_link_follows_the_clock_of_the_rig_that_answers(rig_process):
+    """A rig back on the same address may run on the other clock: each take of control sets
+    the link for the rig that answered (a lockstep rig's long wait, never retried, must not
+    stay on a real-time rig, whose lost link it would hide for the whole reconnect window)."""
+    from cbc_controller.client import RigClient
+    from cbc_controller.engine import REALTIME_ANSWER_S, REALTIME_RETRIES, Engine, LoopOptions
+    from rig_sim.harness import RigProcess
+    lockstep = rig_process("--rig", "flutter", "--lockstep")
+    port = lockstep.port
+    engine = Engine(RigClient(lockstep.url, timeout=1.0, retries=1), LoopOptions(reconnect_s=7.0))
+    engine.start()
+    assert engine.lockstep and engine.rig.link == (7.0, 0)
+    engine.close()
+    lockstep.stop()
+    realtime = RigProcess("--rig", "flutter", "--port", str(port))
+    try:
+        engine.start()
+        assert not engine.lockstep
+        assert engine.rig.link == (REALTIME_ANSWER_S, REALTIME_RETRIES)
+        engine.close()
+    finally:
+        realtime.stop()
+
+
 def test_a_lockstep_rig_slow_to_answer_is_waited_for_and_the_campaign_repeats(
         tmp_path, rig_process):
     """A lockstep rig stopped (SIGSTOP) mid-campaign for longer than a real-time link's
