@@ -30,6 +30,8 @@ import json
 import struct
 from dataclasses import asdict, dataclass
 
+from ..firmware import layout as L
+
 MAP_VERSION = 1
 FIRMWARE_VERSION = 100          # 1.00, as major * 100 + minor
 
@@ -53,9 +55,9 @@ STATUS_BITS = {
     "armed": 0, "running": 1, "fault": 2, "controlled": 3, "lockstep": 4,
     "phase_locked": 5, "saturating": 6, "estimate_ready": 7,
 }
-FAULT_WATCHDOG = 2            # the host's heartbeat stopped (firmware/layout.py: the same code)
-FAULT_CODES = {0: "none", 1: "amplitude trip", FAULT_WATCHDOG: "watchdog (host heartbeat lost)",
-               3: "state diverged"}
+FAULT_WATCHDOG = L.FAULT_WATCHDOG     # the host's heartbeat stopped
+FAULT_CODES = {L.FAULT_NONE: "none", L.FAULT_TRIP: "amplitude trip",
+               L.FAULT_WATCHDOG: "watchdog (host heartbeat lost)", L.FAULT_DIVERGED: "state diverged"}
 COMMANDS = {1: "arm", 2: "disarm", 3: "reset fault", 4: "reset averages"}
 CONTROL_VALUES = {0: "free / release", 1: "held by you / claim", 2: "held by another client"}
 
