@@ -15,11 +15,14 @@ aerodynamic lag state no longer acts, so the quasi-steady mechanistic model is t
 own and a planted ``--rig-effect`` is missing physics without memory (docs/experiments.md,
 thirty-ninth session). ``--loop`` runs the discovery loop (``ude-fit loop``, the
 pipeline's second part) instead of the fit, and judges its refined model the same way,
-with the issue's criterion against the loop on the non-invasive campaign ("criterion").
+with the issue's criterion against the loop on the non-invasive campaign ("criterion");
+``--loop --ude`` also fits the default UDE (``--starts`` starts) on each loop's refined
+model, as ``ude-fit loop --ude`` does, and judges its kept UDE the same way
+("criterion_ude").
 
     python3 benchmarks/invasive_benchmark.py [--loose 0.05,0.15] [--sigmas 0,0.02]
         [--seeds 0] [--starts 2] [--add EFFECT ...] [--rig-physics NAME=VALUE ...]
-        [--rig-effect NAME=VALUE ...] [--loop]
+        [--rig-effect NAME=VALUE ...] [--loop [--ude]]
 """
 
 from __future__ import annotations
@@ -38,8 +41,8 @@ jax.config.update("jax_enable_x64", True)
 
 from rig_sim.physics.configuration import configured_params  # noqa: E402
 from rig_sim.physics.effects import parse_effects as rig_effect_vector  # noqa: E402
-from tests.invasive_cases import (fit_cases, loop_cases, truth_reference,  # noqa: E402
-                                  write_cases)
+from tests.invasive_cases import (against_truth, fit_cases, loop_cases,  # noqa: E402
+                                  truth_reference, write_cases)
 from ude_fit.models.library import parse_effects  # noqa: E402
 
 
@@ -68,11 +71,18 @@ def _figures_vs_truth(j: dict) -> dict:
             "hopf": j["hopf"]["model"], "fold": j["fold"]["model"]}
 
 
-def _loop_figures(res, seconds, after) -> dict:
+def _loop_figures(res, seconds, after, truth, reference) -> dict:
     judged = res.after.controlled
-    return {"added": [k for k, _ in res.added], "seconds": round(seconds, 1), **after,
-            "judged_under_control": None if judged is None else
-            {"branch_rms": judged.branch_rms, "missed": judged.missed}}
+    out = {"added": [k for k, _ in res.added], "seconds": round(seconds, 1), **after,
+           "judged_under_control": None if judged is None else
+           {"branch_rms": judged.branch_rms, "missed": judged.missed}}
+    fitted = res.ude.get("after")
+    if fitted is not None:       # --ude: the kept UDE on the refined model
+        out["ude"] = {"adequate_starts": fitted.adequate, "seconds": round(fitted.seconds, 1),
+                      **({"kept": None} if fitted.ude is None else _figures_vs_truth(
+                          against_truth(fitted.ude, truth, fitted.ranges, fitted.scales,
+                                        reference).to_json()))}
+    return out
 
 
 def _criterion(runs: dict) -> dict:
@@ -90,12 +100,16 @@ def _criterion(runs: dict) -> dict:
     return out
 
 
-def _loop_run(folder, loose, sigma, seed, rig) -> dict:
+def _loop_run(folder, loose, sigma, seed, rig, ude_starts) -> dict:
     truth = write_cases(folder, loose, sigma=sigma, seed=seed, rig=rig)
-    cases = loop_cases(folder, truth, seed=seed, reference=truth_reference(rig))
-    runs = {name: _loop_figures(res, sec, _figures_vs_truth(m))
+    reference = truth_reference(rig)
+    cases = loop_cases(folder, truth, seed=seed, reference=reference, ude_starts=ude_starts)
+    runs = {name: _loop_figures(res, sec, _figures_vs_truth(m), truth, reference)
             for name, (res, sec, m) in cases.items()}
-    return {**runs, "criterion": _criterion(runs)}
+    out = {**runs, "criterion": _criterion(runs)}
+    if ude_starts and all(runs[k]["ude"].get("kept", True) is not None for k in runs):
+        out["criterion_ude"] = _criterion({k: runs[k]["ude"] for k in runs})
+    return out
 
 
 def main(argv=None) -> int:
@@ -105,7 +119,11 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")], default=[0])
     ap.add_argument("--starts", type=int, default=2)
     ap.add_argument("--loop", action="store_true",
-                    help="the discovery loop instead of the fit (--starts, --add unused)")
+                    help="the discovery loop instead of the fit (--add unused; --starts "
+                    "only with --ude)")
+    ap.add_argument("--ude", action="store_true",
+                    help="with --loop: also the default UDE fit (--starts starts) on each "
+                    "loop's refined model, as ude-fit loop --ude, and the criterion at it")
     ap.add_argument("--add", nargs="+", default=[], metavar="EFFECT[=SHAPE]",
                     help="library effects added to every fit's mechanistic model (as "
                     "ude-fit fit --add), e.g. heave_unsteady_aero pitch_unsteady_aero")
@@ -114,6 +132,8 @@ def main(argv=None) -> int:
     ap.add_argument("--rig-effect", nargs="+", default=[], metavar="NAME=VALUE",
                     help="undeclared physics the rig is started with (rig-sim --effect)")
     a = ap.parse_args(argv)
+    if a.ude and not a.loop:
+        ap.error("--ude applies with --loop only (without it every fit is a UDE fit)")
     effects = parse_effects("flutter", a.add)
     try:
         configured_params("flutter", a.rig_physics)
@@ -127,7 +147,8 @@ def main(argv=None) -> int:
             for seed in a.seeds:
                 with tempfile.TemporaryDirectory() as d:
                     if a.loop:
-                        figures = _loop_run(d, loose, sigma, seed, rig)
+                        figures = _loop_run(d, loose, sigma, seed, rig,
+                                            a.starts if a.ude else 0)
                     else:
                         cases = fit_cases(d, loose, sigma=sigma, seed=seed, starts=a.starts,
                                           effects=effects, rig=rig)

@@ -120,22 +120,29 @@ def fit_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
 
 
 def loop_cases(folder: Path, truth_ds, *, bootstrap: int = 20, seed: int = 0,
-               reference: dict = TRUTH_REFERENCE) -> dict:
+               reference: dict = TRUTH_REFERENCE, ude_starts: int = 0) -> dict:
     """{name: (LoopResult, seconds, its refined model's metrics against the truth as JSON)}
     for the discovery loop (``ude-fit loop``, the pipeline's second part) on the campaigns
     :func:`write_cases` wrote under ``folder`` (``truth_ds``: what it returned), one loop
-    per :data:`FITS` entry, with the control as an input where the entry says so."""
+    per :data:`FITS` entry, with the control as an input where the entry says so. With
+    ``ude_starts`` the default UDE fit on the refined model (as ``ude-fit loop --ude``, that
+    many starts) goes in each result's ``ude["after"]``; its seconds are not counted."""
     from ude_fit.data import load
-    from ude_fit.discovery.loop import close_loop
+    from ude_fit.discovery.loop import close_loop, fit_stage_ude
     from ude_fit.training.control import ControlChoice
+    from ude_fit.training.options import FitOptions
 
     out = {}
     for name, path, control in FITS:
         t0 = time.perf_counter()
-        res = close_loop(load([Path(folder) / path], "flutter"), "flutter", seed=seed,
-                         bootstrap=bootstrap, reference=reference,
+        ds = load([Path(folder) / path], "flutter")
+        res = close_loop(ds, "flutter", seed=seed, bootstrap=bootstrap, reference=reference,
                          control=ControlChoice("flutter") if control else None)
         seconds = time.perf_counter() - t0
+        if ude_starts:
+            res.ude["after"] = fit_stage_ude(
+                res, res.after, ds, FitOptions("flutter", starts=ude_starts, seed=seed),
+                reference=reference)
         out[name] = (res, seconds, against_truth(res.after.model, truth_ds, res.ranges,
                                                  res.after.scales, reference).to_json())
     return out

@@ -419,16 +419,22 @@ def fit_udes(result: LoopResult, ds: OrbitDataset, opts, *, reference=None, prog
         if which == "after" and not result.added:
             result.ude["after"] = result.ude.get("before")
             continue
-        stage_opts = opts
-        if result.control is not None:
-            stage_opts = dataclasses.replace(
-                opts, control_input=True,
-                control_gain=stage.identification["control"]["gain"])
-        result.ude[which] = fit(ds, stage_opts, reference=reference, progress=progress,
-                                mechanistic=stage.model)
+        result.ude[which] = fit_stage_ude(result, stage, ds, opts, reference=reference,
+                                          progress=progress)
     compare_ude_route(result, result.ude["before"], seed=seed,
                       bootstrap=bootstrap, progress=progress)
     return result
+
+
+def fit_stage_ude(result: LoopResult, stage: Stage, ds: OrbitDataset, opts, *,
+                  reference=None, progress=None):
+    """A UDE fitted on one of the loop's stages (its mechanistic or refined model, with
+    ``opts``); with the loop's control input it takes the control too, at the gain that
+    stage identified."""
+    if result.control is not None:
+        opts = dataclasses.replace(opts, control_input=True,
+                                   control_gain=stage.identification["control"]["gain"])
+    return fit(ds, opts, reference=reference, progress=progress, mechanistic=stage.model)
 
 
 def compare_ude_route(result: LoopResult, ude_fit, *, seed: int = 0, bootstrap: int = 200,
