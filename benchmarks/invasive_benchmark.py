@@ -78,10 +78,12 @@ def _loop_figures(res, seconds, after, truth, reference) -> dict:
            {"branch_rms": judged.branch_rms, "missed": judged.missed}}
     fitted = res.ude.get("after")
     if fitted is not None:       # --ude: the kept UDE on the refined model
+        kept = fitted.ude is not None
         out["ude"] = {"adequate_starts": fitted.adequate, "seconds": round(fitted.seconds, 1),
-                      **({"kept": None} if fitted.ude is None else _figures_vs_truth(
-                          against_truth(fitted.ude, truth, fitted.ranges, fitted.scales,
-                                        reference).to_json()))}
+                      "kept": kept,
+                      **(_figures_vs_truth(against_truth(fitted.ude, truth, fitted.ranges,
+                                                         fitted.scales, reference).to_json())
+                         if kept else {})}
     return out
 
 
@@ -107,7 +109,7 @@ def _loop_run(folder, loose, sigma, seed, rig, ude_starts) -> dict:
     runs = {name: _loop_figures(res, sec, _figures_vs_truth(m), truth, reference)
             for name, (res, sec, m) in cases.items()}
     out = {**runs, "criterion": _criterion(runs)}
-    if ude_starts and all(runs[k]["ude"].get("kept", True) is not None for k in runs):
+    if ude_starts and all(runs[k]["ude"]["kept"] for k in runs):
         out["criterion_ude"] = _criterion({k: runs[k]["ude"] for k in runs})
     return out
 
