@@ -7,6 +7,10 @@ the non-invasive campaign ("held"), of the invasive one with the recorded contro
 input ("loose+control") and without ("loose"), each judged against the rig's own open-loop
 orbits: branch RMS, missed orbits, Hopf and fold airspeeds (truth 23.95 and 16.82 m/s) of
 the kept UDE and of the mechanistic model, adequate starts and the wall time of the fit.
+Every run also says how each campaign was held ("holding", ude_fit/data/holding.py): its
+points called invasive, and the control's first harmonic (N) at the median and the largest;
+with noise the "non-invasive" campaign's control is not zero either (docs/experiments.md,
+fifty-third session).
 ``--add`` adds library effects to every fit's mechanistic model (as ``ude-fit fit --add``).
 ``--rig-physics`` and ``--rig-effect`` start the rig in another configuration and with
 undeclared physics (as ``rig-sim serve --physics``/``--effect``); its truth (the Hopf and
@@ -36,6 +40,7 @@ import tempfile
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 import jax  # noqa: E402
+import numpy as np  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -52,6 +57,25 @@ def _floats(text: str) -> list[float]:
 
 def _against_truth(metrics) -> dict:
     return _figures_vs_truth(metrics.to_json())
+
+
+def _holding(folder) -> dict:
+    """How each campaign under ``folder`` was held: its points, those called invasive, the
+    control's first harmonic at the median and the largest, and the largest target
+    mismatch (|T1 - X1| / |X1|)."""
+    from ude_fit.data import load
+    out = {}
+    for name, path in (("held", "held.h5"), ("loose", "loose.h5")):
+        hs = [o.holding for o in load([os.path.join(folder, path)], "flutter")
+              if o.holding is not None]
+        amp = [h.control_amplitude for h in hs]
+        mis = [h.target_mismatch for h in hs if h.target_mismatch is not None]
+        out[name] = {"points": len(hs), "invasive": sum(h.invasive for h in hs),
+                     "control_unit": hs[0].control_unit if hs else None,
+                     "control_median": float(np.median(amp)) if amp else None,
+                     "control_max": max(amp, default=None),
+                     "target_mismatch_max": max(mis, default=None)}
+    return out
 
 
 def _figures(result, metrics, seconds, mechanistic) -> dict:
@@ -155,7 +179,9 @@ def main(argv=None) -> int:
                         cases = fit_cases(d, loose, sigma=sigma, seed=seed, starts=a.starts,
                                           effects=effects, rig=rig)
                         figures = {name: _figures(*c) for name, c in cases.items()}
-                runs.append({"loose": loose, "sigma": sigma, "seed": seed, **figures})
+                    figures["holding"] = _holding(d)
+                # "looseness", not "loose": that is the name of a fit among the figures
+                runs.append({"looseness": loose, "sigma": sigma, "seed": seed, **figures})
                 print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
     print(json.dumps({"benchmark": "invasive", "stage": "loop" if a.loop else "fit",
                       "starts": a.starts, "added": a.add,
