@@ -46,8 +46,8 @@ jax.config.update("jax_enable_x64", True)
 
 from rig_sim.physics.configuration import configured_params  # noqa: E402
 from rig_sim.physics.effects import parse_effects as rig_effect_vector  # noqa: E402
-from tests.invasive_cases import (against_truth, fit_cases, loop_cases,  # noqa: E402
-                                  truth_reference, write_cases)
+from tests.invasive_cases import (FITS, against_truth, fit_cases,  # noqa: E402
+                                  loop_cases, truth_reference, write_cases)
 from ude_fit.models.library import parse_effects  # noqa: E402
 
 
@@ -65,7 +65,8 @@ def _holding(folder) -> dict:
     mismatch (|T1 - X1| / |X1|)."""
     from ude_fit.data import load
     out = {}
-    for name, path in (("held", "held.h5"), ("loose", "loose.h5")):
+    for path in dict.fromkeys(path for _, path, _ in FITS):     # each campaign once
+        name = os.path.splitext(path)[0]
         hs = [o.holding for o in load([os.path.join(folder, path)], "flutter")
               if o.holding is not None]
         amp = [h.control_amplitude for h in hs]
