@@ -277,27 +277,60 @@ def test_report_lists_unknown_points_holding_and_parameter_sources(named):
     assert "| m_T | 16.9 | — | user file rig.toml |" in text
 
 
+def _lee_with_pitch(path, pitch_of_phase, failed_of_phase):
+    """A lee2020-format file whose pitch row is pitch_of_phase(ph), with the encoder's failed
+    reads (its all-ones code) where failed_of_phase(ph) is true; the loaded orbit."""
+    from ude_fit.data.lee import LEE_PITCH_INVALID
+    write_lee(path, V=21.0)
+    m = scipy.io.loadmat(str(path))
+    data = m["data"].copy()
+    ph = 2 * np.pi * FREQ * np.arange(data.shape[1]) / RATE
+    data[3] = pitch_of_phase(ph)
+    data[3, failed_of_phase(ph)] = LEE_PITCH_INVALID + 1e-6
+    scipy.io.savemat(str(path), {**{k: v for k, v in m.items() if not k.startswith("__")},
+                                 "data": data})
+    return load([path], "flutter")[0]
+
+
+def _assert_the_written_swing(o):
+    """The pitch as write_lee writes it: mean 0, 0.05 rad, 1 rad behind the heave, nothing
+    else."""
+    pitch = o.coeffs[1]
+    K = (pitch.size - 1) // 2
+    assert abs(pitch[0]) < 1e-6                       # the signal's mean is its offset
+    assert math.hypot(pitch[1], pitch[1 + K]) == pytest.approx(0.05, rel=1e-6)
+    assert math.atan2(-pitch[1 + K], pitch[1]) == pytest.approx(1.0, abs=1e-6)
+    assert np.all(np.abs(pitch[2:1 + K]) < 1e-6) and np.all(np.abs(pitch[2 + K:]) < 1e-6)
+
+
 def test_pitch_offset_is_the_fitted_mean_where_failed_reads_cluster(tmp_path):
     """The encoder's failed reads (the all-ones code) come in bursts at a few angles of the
     cycle. Left out, they leave the valid samples' plain mean off the signal's own mean, by
     where they fall; the pitch's offset is the fitted mean, so the loaded orbit is the
     signal with its mean removed and its harmonics as they were."""
-    from ude_fit.data.lee import LEE_PITCH_INVALID
-    path = tmp_path / "CBC_v21_0.mat"
-    write_lee(path, V=21.0)
-    m = scipy.io.loadmat(str(path))
-    data = m["data"].copy()
-    ph = 2 * np.pi * FREQ * np.arange(data.shape[1]) / RATE
     # 20 % of the reads fail, all near the top of the pitch's swing
-    failed = np.cos(ph + 1.0) > np.quantile(np.cos(ph + 1.0), 0.8)
-    data[3, failed] = LEE_PITCH_INVALID + 1e-6
-    scipy.io.savemat(str(path), {**{k: v for k, v in m.items() if not k.startswith("__")},
-                                 "data": data})
-    o = load([path], "flutter")[0]
-    pitch = o.coeffs[1]
-    K = (pitch.size - 1) // 2
-    assert abs(pitch[0]) < 1e-6                       # the signal's mean is its offset
-    # the first harmonic as written (0.05 rad), the heave's phase frame: 1 rad behind
-    assert math.hypot(pitch[1], pitch[1 + K]) == pytest.approx(0.05, rel=1e-6)
-    assert math.atan2(-pitch[1 + K], pitch[1]) == pytest.approx(1.0, abs=1e-6)
-    assert np.all(np.abs(pitch[2:1 + K]) < 1e-6) and np.all(np.abs(pitch[2 + K:]) < 1e-6)
+    o = _lee_with_pitch(tmp_path / "CBC_v21_0.mat", lambda ph: 0.35 + 0.05 * np.cos(ph + 1.0),
+                        lambda ph: np.cos(ph + 1.0) > np.quantile(np.cos(ph + 1.0), 0.8))
+    _assert_the_written_swing(o)
+
+
+@pytest.mark.parametrize("offset", [0.01, 2 * math.pi - 0.01])
+def test_a_pitch_wrapped_at_2pi_is_unwrapped(tmp_path, offset):
+    """The data's README: the pitch row is wrapped at 2 pi and offset. The lee2020 files'
+    offset keeps it clear of the wrap, another configuration's need not: a pitch swinging
+    across 0 = 2 pi (its readings jumping between near 0 and near 2 pi), with bursts of the
+    encoder's failed reads among them, loads as the swing itself."""
+    def bursts(ph):
+        failed = np.zeros(ph.size, dtype=bool)
+        for start in np.random.default_rng(1).integers(0, ph.size - 15, 40):
+            failed[start:start + 15] = True
+        return failed
+
+    def wrapped(ph):
+        row = np.mod(offset + 0.05 * np.cos(ph + 1.0), 2 * np.pi)
+        assert np.ptp(row) > 6.0                      # the row does wrap
+        return row
+
+    o = _lee_with_pitch(tmp_path / "CBC_v21_0.mat", wrapped, bursts)
+    _assert_the_written_swing(o)
+    assert o.noise[1] < 1e-6 * 0.05
