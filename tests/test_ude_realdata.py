@@ -31,17 +31,20 @@ RATE = 5000.0
 FREQ = 2.4
 
 
-def write_lee(path, *, V=20.0, n=20000, control=0.0, target_gain=1.0, noise=0.0, seed=0):
+def write_lee(path, *, V=20.0, n=20000, control=0.0, target_gain=1.0, noise=0.0, seed=0,
+              pitch_offset=0.35):
     """A lee2020-format file: heave (row 0, volts about 3.3 V), target (row 1), control
     (row 2: a cosine of amplitude ``control`` V at the orbit's frequency plus white noise
-    of RMS ``noise``), pitch (row 3, rad), a constant row 4."""
+    of RMS ``noise``), pitch (row 3, rad: 0.05 rad about ``pitch_offset``, 1 rad behind the
+    heave, wrapped at 2 pi as the encoder reads it), a constant row 4."""
     rng = np.random.default_rng(seed)
     t = np.arange(n) / RATE
     ph = 2 * np.pi * FREQ * t
     heave = 3.3 + 0.2 * np.cos(ph)
     data = np.vstack([heave, 3.3 + target_gain * 0.2 * np.cos(ph),
                       control * np.cos(ph + 0.3) + noise * rng.standard_normal(n),
-                      0.35 + 0.05 * np.cos(ph + 1.0), np.full(n, 3.3)])
+                      np.mod(pitch_offset + 0.05 * np.cos(ph + 1.0), 2 * np.pi),
+                      np.full(n, 3.3)])
     scipy.io.savemat(str(path), {"data": data, "time": t[None, :], "Wind_sped": V,
                                  "freq_actual": FREQ})
 
@@ -277,15 +280,14 @@ def test_report_lists_unknown_points_holding_and_parameter_sources(named):
     assert "| m_T | 16.9 | — | user file rig.toml |" in text
 
 
-def _lee_with_pitch(path, pitch_of_phase, failed_of_phase):
-    """A lee2020-format file whose pitch row is pitch_of_phase(ph), with the encoder's failed
-    reads (its all-ones code) where failed_of_phase(ph) is true; the loaded orbit."""
+def _lee_with_pitch(path, failed_of_phase, pitch_offset=0.35):
+    """write_lee's file with the encoder's failed reads (its all-ones code) where
+    failed_of_phase(ph) is true; the loaded orbit."""
     from ude_fit.data.lee import LEE_PITCH_INVALID
-    write_lee(path, V=21.0)
+    write_lee(path, V=21.0, pitch_offset=pitch_offset)
     m = scipy.io.loadmat(str(path))
     data = m["data"].copy()
     ph = 2 * np.pi * FREQ * np.arange(data.shape[1]) / RATE
-    data[3] = pitch_of_phase(ph)
     data[3, failed_of_phase(ph)] = LEE_PITCH_INVALID + 1e-6
     scipy.io.savemat(str(path), {**{k: v for k, v in m.items() if not k.startswith("__")},
                                  "data": data})
@@ -309,7 +311,7 @@ def test_pitch_offset_is_the_fitted_mean_where_failed_reads_cluster(tmp_path):
     where they fall; the pitch's offset is the fitted mean, so the loaded orbit is the
     signal with its mean removed and its harmonics as they were."""
     # 20 % of the reads fail, all near the top of the pitch's swing
-    o = _lee_with_pitch(tmp_path / "CBC_v21_0.mat", lambda ph: 0.35 + 0.05 * np.cos(ph + 1.0),
+    o = _lee_with_pitch(tmp_path / "CBC_v21_0.mat",
                         lambda ph: np.cos(ph + 1.0) > np.quantile(np.cos(ph + 1.0), 0.8))
     _assert_the_written_swing(o)
 
@@ -326,11 +328,9 @@ def test_a_pitch_wrapped_at_2pi_is_unwrapped(tmp_path, offset):
             failed[start:start + 15] = True
         return failed
 
-    def wrapped(ph):
-        row = np.mod(offset + 0.05 * np.cos(ph + 1.0), 2 * np.pi)
-        assert np.ptp(row) > 6.0                      # the row does wrap
-        return row
-
-    o = _lee_with_pitch(tmp_path / "CBC_v21_0.mat", wrapped, bursts)
+    path = tmp_path / "CBC_v21_0.mat"
+    o = _lee_with_pitch(path, bursts, pitch_offset=offset)
+    row = scipy.io.loadmat(str(path))["data"][3]
+    assert np.ptp(row[row < 2 * np.pi - 1e-3]) > 6.0    # the valid readings do wrap
     _assert_the_written_swing(o)
     assert o.noise[1] < 1e-6 * 0.05
