@@ -19,7 +19,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from .. import __version__
-from .member import CAMPAIGN_FILE, CAMPAIGN_TOML, MemberResult, run_member
+from .member import CAMPAIGN_FILE, CAMPAIGN_TOML, ControllerKilled, MemberResult, run_member
 from .options import PLUGIN_FILE, FleetOptions, Member
 
 INDEX_JSON = "index.json"
@@ -229,6 +229,7 @@ def run_fleet(options: FleetOptions, out: str | Path, address: str | None = None
     control = _control()
     # SPREAD: a queued member goes to any free node (the default packs the driver's node first)
     task = ray.remote(num_cpus=options.cpus_per_member, max_retries=options.retries,
+                      retry_exceptions=[ControllerKilled],
                       scheduling_strategy="SPREAD")(_member_task)
     pending = {}
     for m in todo:

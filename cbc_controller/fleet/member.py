@@ -23,6 +23,17 @@ from .options import PLUGIN_FILE, Member
 CAMPAIGN_FILE = "campaign.h5"
 CAMPAIGN_TOML = "campaign.toml"
 POLL_S = 0.5
+# signals that end a controller from outside (its node lost, the OOM killer, an operator):
+# the machine's trouble, not the member's, so the member is run again
+OUTSIDE_KILLS = frozenset({signal.SIGKILL, signal.SIGTERM, signal.SIGHUP})
+
+
+class ControllerKilled(RuntimeError):
+    """A member's controller ended by a signal nobody in the fleet sent. Raised, not returned
+    as "failed": the worker can outlive its node for a moment (a lost node's raylet and its
+    workers do not die at one instant), and a result it returned then would record the node's
+    loss as the member's failure; the driver's task retries on this error as on a dead
+    worker."""
 
 
 @dataclass(frozen=True)
@@ -69,9 +80,13 @@ def campaign_summary(path: str) -> tuple[dict, list[dict]]:
             "stop_reason": camp.runs[-1].get("stop_reason") if camp.runs else None}, camp.points
 
 
-def _last_line(text: str) -> str:
+def _last_line(text: str, returncode: int) -> str:
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-    return lines[-1] if lines else "no output"
+    if lines:
+        return lines[-1]
+    if returncode < 0:
+        return f"the controller died of {signal.Signals(-returncode).name}"
+    return f"the controller exited with status {returncode} and no output"
 
 
 def run_member(member: Member, resume: bytes | None = None,
@@ -108,6 +123,9 @@ def run_member(member: Member, resume: bytes | None = None,
                     proc.send_signal(signal.SIGINT)
                     stopped = True
         wall = time.monotonic() - t0
+        if not stopped and -proc.returncode in OUTSIDE_KILLS:
+            raise ControllerKilled(f"{member.id}: its controller was killed by "
+                                   f"{signal.Signals(-proc.returncode).name}")
         summary, points, data = {}, [], None
         if out.exists():
             try:
@@ -122,7 +140,8 @@ def run_member(member: Member, resume: bytes | None = None,
             status, error = "interrupted", None
         else:
             status = "failed"
-            error = reason if reason and reason != "completed" else _last_line(err)
+            error = (reason if reason and reason != "completed"
+                     else _last_line(err, proc.returncode))
         truth = None
         if points and status != "interrupted":
             from .truth import truth_agreement      # numba: only where a member ran
