@@ -53,7 +53,7 @@ class Node:
     def running(self, fragment: str) -> list[int]:
         """Pids of this node's processes (its workers' children too) whose command line
         holds `fragment`: found by the node's name in their environment."""
-        return _pids_with(f"LAB_RAY_NODE={self.name}".encode(), fragment.encode())
+        return pids_with(f"LAB_RAY_NODE={self.name}".encode(), fragment.encode())
 
     def kill(self) -> None:
         """Lose the node: SIGKILL to its whole process group."""
@@ -99,7 +99,7 @@ class LocalRayCluster:
 
     def running(self, fragment: str) -> list[int]:
         """Pids of any node's processes whose command line holds `fragment`."""
-        return _pids_with(f"LAB_RAY_CLUSTER={self.temp_dir}".encode(), fragment.encode())
+        return pids_with(f"LAB_RAY_CLUSTER={self.temp_dir}".encode(), fragment.encode())
 
     def alive(self) -> list[str]:
         """Node ids of the alive nodes (asked of the cluster by a short-lived driver)."""
@@ -134,17 +134,20 @@ class LocalRayCluster:
         self.stop()
 
 
-def _pids_with(env_entry: bytes, fragment: bytes = b"") -> list[int]:
+def pids_with(env_entry: bytes | None, fragment: bytes = b"") -> list[int]:
+    """Pids of the other processes whose command line holds `fragment` and, unless None,
+    whose environment holds `env_entry`."""
     out = []
     for pid in os.listdir("/proc"):
         if not pid.isdigit() or int(pid) == os.getpid():
             continue
         try:
-            env = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
             cmd = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ")
+            env = ([] if env_entry is None
+                   else Path(f"/proc/{pid}/environ").read_bytes().split(b"\0"))
         except OSError:
             continue
-        if env_entry in env and fragment in cmd:
+        if (env_entry is None or env_entry in env) and fragment in cmd:
             out.append(int(pid))
     return out
 
@@ -153,7 +156,7 @@ def _kill_leftovers(marker: str) -> None:
     """Processes this cluster started that left their node's process group (Ray starts some
     workers in sessions of their own): found by the marker in their environment, killed by
     pid."""
-    for pid in _pids_with(f"LAB_RAY_CLUSTER={marker}".encode()):
+    for pid in pids_with(f"LAB_RAY_CLUSTER={marker}".encode()):
         try:
             os.kill(pid, signal.SIGKILL)
         except ProcessLookupError:

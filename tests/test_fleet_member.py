@@ -7,16 +7,15 @@ from __future__ import annotations
 
 import os
 import signal
+import tempfile
 import threading
 import time
-from pathlib import Path
-
 import pytest
 
 from cbc_controller.fleet.member import ControllerKilled, run_member
 from cbc_controller.fleet.options import Member, RigSettings
 from tests.cluster_scenario import FLUTTER
-from tests.ray_cluster import LONG_AIRSPEEDS
+from tests.ray_cluster import LONG_AIRSPEEDS, pids_with
 
 # the cluster scenario's long lockstep flutter campaign: long enough to be found running
 CAMPAIGN = FLUTTER.format(name="long", values=str(list(LONG_AIRSPEEDS)))
@@ -29,17 +28,11 @@ def _member(name: str) -> Member:
 
 def _controller_of(member_id: str, timeout: float = 60.0) -> int:
     """The pid of the controller running `member_id` (its scratch folder names it)."""
+    fragment = f"cbc_controller.cli run {tempfile.gettempdir()}/fleet-{member_id}-".encode()
     t0 = time.time()
     while time.time() - t0 < timeout:
-        for entry in Path("/proc").iterdir():
-            if not entry.name.isdigit():
-                continue
-            try:
-                cmd = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
-            except OSError:
-                continue
-            if "cbc_controller.cli run" in cmd and f"/fleet-{member_id}-" in cmd:
-                return int(entry.name)
+        if pids := pids_with(None, fragment):
+            return pids[0]
         time.sleep(0.1)
     raise AssertionError(f"no controller for {member_id} started")
 
