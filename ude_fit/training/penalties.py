@@ -143,14 +143,17 @@ def _hopf_from_unstable(P, amp, lab) -> float:
     return float(-c[1] / c[0]) if c is not None and c[0] < 0 else np.inf
 
 
-def _work_per_amplitude2(force, y_unit, V, dt, amps, n):
-    """Net work per cycle over A^2 of ``force(y, drive)`` along the unit-amplitude orbit
-    shape ``y_unit`` (samples over one period, ``dt`` apart) scaled to each amplitude A in
-    ``amps``, at airspeed V: the describing-function energy balance."""
+def _work_per_amplitude2(force_at, y_unit, V, dt, amps, n):
+    """Net work per cycle over A^2 of the force ``force_at(drive)(y)`` along the
+    unit-amplitude orbit shape ``y_unit`` (samples over one period, ``dt`` apart) scaled to
+    each amplitude A in ``amps``, at airspeed V: the describing-function energy balance.
+    ``force_at`` builds the force once per drive (a rest-free correction's terms at rest
+    depend on the airspeed alone: :meth:`UDE.at_drive`)."""
     d = Drive.of(V)
+    force = force_at(d)
 
     def at(a):
-        F = jax.vmap(lambda y: force(a * y, d))(y_unit)
+        F = jax.vmap(lambda y: force(a * y))(y_unit)
         return jnp.sum(F * y_unit[:, n:2 * n]) * dt / a
     return jax.vmap(at)(amps)
 
@@ -235,7 +238,11 @@ class EnergyShape(Penalty):
         unstable orbit and a stable one around it: the subcritical picture with one fold. A
         network that bends D up and down between the measured amplitudes puts orbits at every
         bend, which is what makes a diagram snake and isolas appear."""
-        work = lambda y, V, dt: _work_per_amplitude2(model.correction_force, y, V, dt,
+        def correction_at(d):
+            frozen = model.at_drive(d)
+            return lambda y: frozen.correction_force(y, d)
+
+        work = lambda y, V, dt: _work_per_amplitude2(correction_at, y, V, dt,
                                                      reg.energy_amps, model.mech.n_dof)
         # every measured shape at its own airspeed and across the traced range, where nothing
         # measured holds the correction (isolas grow there)
@@ -283,13 +290,15 @@ class EnergyRising(Penalty):
         shapes, below about 18 m/s), so the grid starts half a span below the data."""
         n = model.mech.n_dof
         mech = model.mech.base
-        total = lambda y, d: mech.force(y[:n], y[n:2 * n], d) + model.correction_force(y, d)
+        def total_at(d):
+            frozen = model.at_drive(d)
+            return lambda y: mech.force(y[:n], y[n:2 * n], d) + frozen.correction_force(y, d)
         Vr = reg.rising_V
         # down to 1 % of the largest orbit: the hooks a branch makes near its Hopf point
         amps = jnp.concatenate([jnp.array([0.01, 0.02]) * reg.energy_amps[-1] / 1.3,
                                 reg.energy_amps])
         D = jax.vmap(lambda y, dt: jax.vmap(
-            lambda v: _work_per_amplitude2(total, y, v, dt, amps, n))(Vr))(
+            lambda v: _work_per_amplitude2(total_at, y, v, dt, amps, n))(Vr))(
             reg.shapes, reg.shape_dt)                          # (orbits, airspeeds, amplitudes)
         # dD/dV over the measured airspeeds' spread, in units of the aerodynamic work
         rise = jnp.diff(D, axis=1) / jnp.diff(Vr)[None, :, None] * reg.v_span / _aero_work_scale(
