@@ -11,12 +11,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ude_fit import UDE, duffing7, flutter_qs, trace_flutter
-from ude_fit.models.flow import rk4_orbit
-from ude_fit.models.mechanistic import Drive, _exterior_square
-from ude_fit.training.identify import TrainingData
+from ude_fit import duffing7, flutter_qs
+from ude_fit.models.mechanistic import _exterior_square
 from ude_fit.training.losses import orbit_terms, orbit_unknowns, periodic_objective
 from ude_fit.training.options import TrainConfig
+from tests.model_orbits import traced_orbits
 
 jax.config.update("jax_enable_x64", True)
 
@@ -25,26 +24,12 @@ SAMPLES, SUBSTEPS = 50, 4         # 200 RK4 steps a period: the continuation's o
 
 @pytest.fixture(scope="module")
 def traced():
-    model = UDE(flutter_qs())
-    branch = trace_flutter(model, v_range=(5.0, 40.0), amp_max=0.12,
-                           scales=np.array([0.02, 0.1, 0.3, 1.5]), n=SAMPLES * SUBSTEPS)
-    # one unstable orbit (between the Hopf point and the fold) and one stable one beyond it
-    picks = [int(np.flatnonzero(~branch.stable)[len(np.flatnonzero(~branch.stable)) // 2]),
-             int(np.flatnonzero(branch.stable)[len(np.flatnonzero(branch.stable)) // 2])]
-    ys = []
-    for k in picks:
-        _, samples = rk4_orbit(model, jnp.asarray(branch.y0[k]), branch.period[k],
-                               Drive.of(branch.param[k]), SAMPLES * SUBSTEPS)
-        ys.append(np.asarray(samples)[::SUBSTEPS])
-    ys = np.asarray(ys)
-    drive = Drive(jnp.asarray(branch.param[picks]),
-                  jnp.asarray(2 * np.pi / branch.period[picks]), jnp.zeros((2, 15)))
-    label = np.where(branch.stable[picks], 1.0, -1.0)
-    data = TrainingData(jnp.asarray(ys), jnp.zeros(ys.shape[:2] + (2,)),
-                        jnp.asarray(branch.period[picks]), drive, jnp.asarray(label),
-                        jnp.asarray(np.sqrt(np.mean(ys ** 2, axis=(0, 1)))),
-                        float(branch.amplitude[picks].max()))
-    return model, data, label
+    """One unstable orbit (between the Hopf point and the fold) and one stable one beyond
+    it."""
+    def middles(branch):
+        unstable, stable = np.flatnonzero(~branch.stable), np.flatnonzero(branch.stable)
+        return unstable[len(unstable) // 2], stable[len(stable) // 2]
+    return traced_orbits(SAMPLES, SUBSTEPS, middles)
 
 
 def test_an_exact_orbit_fits_and_closes_with_its_traced_stability(traced):

@@ -159,6 +159,11 @@ def add_fit_arguments(p) -> None:
                    "the whole correction. Default: on for the aerofoil's network on periodic "
                    "orbits (--no-from-mechanistic: the fit to the residual forces first; "
                    "docs/fitting.md)")
+    p.add_argument("--collocation", action=argparse.BooleanOptionalAction, default=None,
+                   help="periodic training: each start's first (long) training with every "
+                   "orbit collocated, a free Fourier series the model's vector field must "
+                   "follow, instead of integrated; the periodic stage's shooting steps "
+                   "finish it (docs/fitting.md)")
     p.add_argument("--parameter-errors", action="store_true",
                    help="aerofoil, periodic training, experimental: every orbit's airspeed "
                    "is an unknown too, off its measured value at a cost set by the data's own "
@@ -269,6 +274,7 @@ def fit_options(args):
                           parameter_errors=args.parameter_errors,
                           backbone_margins=args.backbone_margins,
                           from_mechanistic=args.from_mechanistic,
+                          collocation=args.collocation,
                           **({} if args.stability_margin is None
                              else {"stability_margin": args.stability_margin}),
                           branch_rounds=args.branch_rounds,

@@ -121,7 +121,12 @@ def orbit_terms(model, params, data: TrainingData, cfg: TrainConfig) -> OrbitTer
 
 def periodic_objective(model, params, data: TrainingData, cfg: TrainConfig):
     """Closed model orbits through the measured ones, with the measured stability."""
-    t = orbit_terms(model, params, data, cfg)
+    return objective_of(orbit_terms(model, params, data, cfg), data, cfg)
+
+
+def objective_of(t: OrbitTerms, data: TrainingData, cfg: TrainConfig):
+    """The periodic objective from each orbit's terms (by shooting, or by collocation:
+    :mod:`.collocation`): misfit, closure, the measured stability held at its margin."""
     margin = cfg.stability_margin
     if data.margin is not None:     # the data's own (analysis.margins)
         margin = jnp.where(jnp.isnan(data.margin), margin, data.margin)

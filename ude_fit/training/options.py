@@ -104,6 +104,11 @@ class TrainConfig:
     from_mechanistic: bool | None = None
     start_adam_steps: int = 3000
     start_lbfgs_steps: int = 600
+    # periodic training: a start's first training (with from_mechanistic the long one) on
+    # every orbit collocated (training.collocation: the orbit a free Fourier series)
+    # instead of shot, then the periodic stage's adam_steps and lbfgs_steps by shooting from
+    # where it left the orbits (None: as from_mechanistic; docs/fitting.md)
+    collocation: bool | None = None
 
     def __post_init__(self):
         for name in ("width", "depth"):
@@ -114,7 +119,7 @@ class TrainConfig:
         _check_int("constraint_adam_steps", self.constraint_adam_steps, 0)
         for name in ("constrain_unstable_branch", "parameter_errors"):
             _check_bool(name, getattr(self, name))
-        for name in ("backbone_margins", "from_mechanistic"):     # None: the system's
+        for name in ("backbone_margins", "from_mechanistic", "collocation"):  # None: default
             _check_bool(name, getattr(self, name), none_ok=True)
         _check_int("start_adam_steps", self.start_adam_steps, 0)
         _check_int("start_lbfgs_steps", self.start_lbfgs_steps, 0)
@@ -165,7 +170,8 @@ class TrainConfig:
         # the fit's defaults for these (FitOptions) depend on more than the system; a
         # training called directly does without them unless asked
         return dataclasses.replace(cfg, **{k: False for k in ("backbone_margins",
-                                                              "from_mechanistic")
+                                                              "from_mechanistic",
+                                                              "collocation")
                                            if getattr(cfg, k) is None})
 
     def penalty(self, kind: type) -> Penalty | None:
@@ -311,6 +317,9 @@ class FitOptions:
                                             or self.training != "periodic"):
             raise ValueError("--backbone-margins applies to --system flutter with --training "
                              "periodic only (a self-excited branch's Hopf normal form)")
+        if self.train.collocation and self.training != "periodic":
+            raise ValueError("--collocation applies to --training periodic only (the "
+                             "collocated orbits are the periodic objective's)")
         if not system_kind(self.system).autonomous and self.train.form == "amplitude":
             raise ValueError("--correction-form amplitude applies to --system flutter only "
                              "(a self-excited system's orbit sizes)")
@@ -369,6 +378,8 @@ class FitOptions:
                 nn_only.append("--backbone-margins")
             if self.train.from_mechanistic:
                 nn_only.append("--from-mechanistic")
+            if self.train.collocation:
+                nn_only.append("--collocation")
             if self.train.param_scale != 1.0:
                 nn_only.append("--param-scale")
             if self.train.form != "network":
@@ -435,8 +446,9 @@ class FitOptions:
         """The training configuration with the aerofoil's defaults (fields left at None)
         switched off where they do not apply: the rest-free network needs the network (not
         the GP, not the amplitude form); the constraint rounds need it too, periodic
-        training and the starts trained one at a time; the start from the mechanistic model
-        and the backbone's margins, the network on a self-excited system's periodic orbits.
+        training and the starts trained one at a time; the start from the mechanistic model,
+        the backbone's margins and collocation, the network on a self-excited system's
+        periodic orbits.
         (An explicit request where one does not apply was refused above.)"""
         t = self.train
         network = self.approximator == "nn" and t.form == "network"
@@ -452,7 +464,9 @@ class FitOptions:
         # (docs/fitting.md)
         on = (network and self.training == "periodic"
               and system_kind(self.system).autonomous)
-        for name in ("from_mechanistic", "backbone_margins"):
+        # and its long first training runs on the collocated orbits, where a step costs a
+        # sixth of shooting's: the shooting steps after it finish on the same objective
+        for name in ("from_mechanistic", "backbone_margins", "collocation"):
             if getattr(t, name) is None:
                 t = dataclasses.replace(t, **{name: on})
         return t

@@ -42,6 +42,7 @@ from ..models.corrections import (MLPCorrection, PolynomialParamCorrection,
                                   RestFreeCorrection, Scaling, feature_scaling)
 from ..models.ude import UDE
 from .amplitude_start import start_amplitude
+from .collocation import collocation_loss, collocation_unknowns, shooting_unknowns
 from .branch import amplitude_stages
 from .identify import TrainingData, residual_forces
 from .losses import (constrained_periodic_loss, equation_loss, orbit_unknowns, periodic_loss,
@@ -253,6 +254,17 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
                 lanes=lanes, adam_steps=cfg.adam_steps // 2, lbfgs_steps=cfg.lbfgs_steps // 2,
                 lr=cfg.learning_rate, failed=failed, progress=progress,
                 stage=f"periodic, {int(active.sum())} smallest orbits")
+        if cfg.collocation:
+            # the long first training on the collocated orbits; shooting finishes it with
+            # the periodic stage's own steps, from the orbits collocation found
+            cparams = {"corr": params["corr"],
+                       **collocation_unknowns(data, model.mech.autonomous, lead)}
+            cparams, loss, failed = descend(
+                collocation_loss, cparams, (static, mech, data, cfg, reg), lanes=lanes,
+                adam_steps=adam_steps, lbfgs_steps=lbfgs_steps, lr=cfg.learning_rate,
+                failed=failed, progress=progress, stage="collocation")
+            params = {"corr": cparams["corr"], **shooting_unknowns(cparams, data)}
+            adam_steps, lbfgs_steps = cfg.adam_steps, cfg.lbfgs_steps
         params, loss, failed = descend(
             periodic_loss, params, (static, mech, data, cfg, reg), lanes=lanes,
             adam_steps=adam_steps, lbfgs_steps=lbfgs_steps, lr=cfg.learning_rate,
