@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
+from ude_fit.models.flow import ordered_product, rk4_orbit, rk4_orbit_monodromy
 from ude_fit.models.mechanistic import Drive
 from ude_fit.training import collocation
 from ude_fit.training.collocation import (Basis, collocation_terms, collocation_unknowns,
@@ -86,7 +87,7 @@ def test_an_odd_number_of_steps_multiplies_in_order():
     want = np.eye(3)
     for p in P:
         want = p @ want
-    np.testing.assert_allclose(np.asarray(collocation._ordered_product(jnp.asarray(P))),
+    np.testing.assert_allclose(np.asarray(ordered_product(jnp.asarray(P))),
                                want, rtol=1e-12, atol=1e-12)
 
 
@@ -107,3 +108,28 @@ def test_shooting_starts_where_the_series_does(traced):
                                rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(np.asarray(got["dT"]), np.asarray(moved["dT"]))
     assert harmonics_of(SAMPLES) == 15
+
+
+def test_the_stagewise_monodromy_is_the_flows_derivative(traced):
+    """Shooting's monodromy matrix from the Jacobians at every Runge-Kutta stage is the
+    derivative of the discrete flow in its start state, as forward-mode autodiff through
+    the integration gives it; here with an imposed force periodic in the orbit's period, so
+    the stages' times matter too."""
+    model, data, _ = traced
+    fc = np.zeros(15)
+    fc[[1, 9]] = (3.0, -1.5)                     # a1 cos + b2 sin, in N on heave
+    for k in range(data.n_orbits):
+        T = data.period[k]
+        drive = Drive.of(data.drive.param[k], 2 * np.pi / T, fc)
+        y0 = data.ys[k, 0]
+
+        def flow(y):
+            yT, ys = rk4_orbit(model, y, T, drive, 96)
+            return yT, (yT, ys)
+        want, (yT, ys) = jax.jacfwd(flow, has_aux=True)(y0)
+        got_yT, got_ys, got = rk4_orbit_monodromy(model, y0, T, drive, 96)
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-12,
+                                   atol=1e-12 * float(jnp.max(jnp.abs(want))))
+        np.testing.assert_allclose(np.asarray(got_yT), np.asarray(yT), rtol=1e-13)
+        np.testing.assert_allclose(np.asarray(got_ys), np.asarray(ys), rtol=1e-13,
+                                   atol=1e-15)

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..models.amplitude import resolve
+from ..models.flow import ordered_product, rk4_propagator
 from ..models.ude import UDE
 from .identify import TrainingData
 from .losses import OrbitTerms, objective_of
@@ -124,34 +125,14 @@ def shooting_unknowns(params: dict, data: TrainingData) -> dict:
     return {**out, **{k: v for k, v in params.items() if k in ("dT", "dP")}}
 
 
-def _propagator(J0, Jm, J1, h):
-    """One classical Runge-Kutta step of the variational equation Phi' = J(t) Phi with the
-    Jacobian at the step's start, midpoint and end: the matrix the step multiplies by."""
-    eye = jnp.eye(J0.shape[-1])
-    K1 = J0
-    K2 = Jm @ (eye + 0.5 * h * K1)
-    K3 = Jm @ (eye + 0.5 * h * K2)
-    K4 = J1 @ (eye + h * K3)
-    return eye + h / 6.0 * (K1 + 2.0 * K2 + 2.0 * K3 + K4)
-
-
-def _ordered_product(P):
-    """P[m-1] ... P[1] P[0] of a stack of matrices, as a balanced tree of products."""
-    while P.shape[0] > 1:
-        odd = P.shape[0] % 2
-        paired = P[1::2] @ P[0:P.shape[0] - odd:2]
-        P = jnp.concatenate([paired, P[-1:]]) if odd else paired
-    return P[0]
-
-
 def monodromy(J, T):
     """The monodromy matrix from the Jacobians ``J`` (FINE n, s, s) at the fine phases of
     one period ``T``: Runge-Kutta steps two phases long."""
     m = J.shape[0]
-    h = 2.0 * T / m
     J0, Jm = J[0::2], J[1::2]
     J1 = jnp.roll(J, -2, axis=0)[0::2]          # the period's end is its start
-    return _ordered_product(jax.vmap(_propagator, (0, 0, 0, None))(J0, Jm, J1, h))
+    stages = jnp.stack([J0, Jm, Jm, J1], axis=1)        # (steps, 4, s, s)
+    return ordered_product(jax.vmap(rk4_propagator, (0, None))(stages, 2.0 * T / m))
 
 
 def collocation_terms(model, params, data: TrainingData, cfg: TrainConfig) -> OrbitTerms:

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 
 from ..models.amplitude import resolve
-from ..models.flow import diffrax_samples, rk4_orbit
+from ..models.flow import diffrax_samples, rk4_orbit_monodromy
 from ..models.ude import UDE
 from .branch import branch_terms
 from .identify import TrainingData
@@ -39,13 +39,9 @@ def equation_loss(params, static, mech, Z, R, penalties=(), reg=None):
 
 
 def _simulate_with_monodromy(model, y0, T, drive, n, sub):
-    """One pass of forward-mode autodiff: end state, samples and the monodromy matrix
-    (the tangent integration rides along with the primal one, so the orbit is
-    integrated once)."""
-    def flow(y):
-        yT, ys = rk4_orbit(model, y, T, drive, n * sub)
-        return yT, (yT, ys)
-    M, (yT, ys) = jax.jacfwd(flow, has_aux=True)(y0)
+    """End state, samples and the monodromy matrix (:func:`rk4_orbit_monodromy`: the
+    derivative of the discrete flow, from the Jacobians at every Runge-Kutta stage)."""
+    yT, ys, M = rk4_orbit_monodromy(model, y0, T, drive, n * sub)
     return yT, ys[::sub], M
 
 
