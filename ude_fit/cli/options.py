@@ -73,6 +73,7 @@ def add_data_arguments(p) -> None:
 def add_fit_arguments(p) -> None:
     """Every option of a fit (:class:`FitOptions`): the same flags, the same defaults, for
     every command that fits."""
+    from ..training.options import DEFAULT_STARTS
     from ..training.penalties import PENALTIES
 
     p.add_argument("--approximator", default="nn", choices=("nn", "gp"),
@@ -83,9 +84,9 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--mechanistic", default="equation", choices=("equation", "periodic"),
                    help="mechanistic identification: least squares on the equation error "
                    "(default), or that refined by output error on the periodic orbits")
-    p.add_argument("--starts", type=positive_int("--starts"), default=5,
+    p.add_argument("--starts", type=positive_int("--starts"), default=DEFAULT_STARTS,
                    help="random starts; an adequate one is kept, the medoid of 3 or more "
-                        "(default 5)")
+                        f"(default {DEFAULT_STARTS})")
     p.add_argument("--starts-together", action="store_true",
                    help="train the network's starts together: Adam vmapped over the starts, "
                    "L-BFGS one start at a time (each start the same as alone; 16 starts "

@@ -28,6 +28,10 @@ MECHANISTIC = ("equation", "periodic")
 # the first at the guide weight, the second at three times it (on lee2020 seeds 0-2 a
 # second round ran in 7 starts and was the one kept in 1; docs/fitting.md)
 DEFAULT_GUIDE_ROUNDS = 2
+# random starts of a fit: the adequate ones' medoid is kept (analysis.keep), so many starts
+# make the kept model the consensus of many; on the aerofoil a start costs about a third of
+# what it did before collocation (docs/fitting.md), and 16 take less time than 5 did
+DEFAULT_STARTS = 16
 
 
 @dataclass(frozen=True)
@@ -229,7 +233,7 @@ class FitOptions:
     system: str
     approximator: str = "nn"
     training: str = "periodic"
-    starts: int = 5
+    starts: int = DEFAULT_STARTS
     # the NN starts trained together (training/optimise.py: Adam vmapped, L-BFGS one start
     # at a time): the same result per start; on 2 cores 16 starts train 1.3x faster than
     # one after another (benchmarks/ude_benchmark.py), not the tenfold a GPU would give
