@@ -41,8 +41,8 @@ def test_an_exact_orbit_collocates_with_shootings_stability(traced):
     # the measured samples are the series' samples, and the series is the model's orbit
     assert np.all(np.asarray(col.fit) < 1e-12)
     assert np.all(np.asarray(col.closure) < 1e-6)
-    # the same stability, by the variational equation along the series at two Runge-Kutta
-    # steps per sample (shooting takes eight here): the fold test's sign everywhere, its
+    # the same stability, by the variational equation along the series at one Runge-Kutta
+    # step per sample (shooting takes eight here): the fold test's sign everywhere, its
     # value and the other two tests' within 1 %
     assert np.all(np.sign(np.asarray(col.indicator)) == label)
     np.testing.assert_allclose(np.asarray(col.indicator), np.asarray(shot.indicator),

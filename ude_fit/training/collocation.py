@@ -3,8 +3,8 @@ model's vector field asked to match its derivative, instead of an integration fr
 initial state (the shooting of :func:`.losses.orbit_terms`).
 
 Shooting integrates every orbit over a period at every step, a chain of a few hundred small
-operations (four Runge-Kutta stages per step, a tangent integration beside it for the
-monodromy matrix), and that chain, not the arithmetic, is what a step costs on a CPU. Here
+operations (four Runge-Kutta stages per step), and that chain, not the arithmetic, is what a
+step costs on a CPU. Here
 the orbit is an unknown of its own, its samples a linear map of its coefficients, and the
 model is evaluated at every phase at once: the whole step is a handful of batched products.
 The same terms come out (:class:`.losses.OrbitTerms`): the misfit of the samples, a *defect*
@@ -22,7 +22,7 @@ both.
 
 What collocation leaves out is the series' truncation: an orbit with harmonics above
 :func:`harmonics_of`'s is not represented, and the monodromy matrix is a Runge-Kutta
-approximation at the sample spacing (two steps per sample). It is therefore the first,
+approximation at the sample spacing (one step per sample). It is therefore the first,
 long training of a start (:func:`.train._train`), which the shooting objective finishes,
 from the initial states and periods collocation found (:func:`shooting_unknowns`).
 """
@@ -42,8 +42,9 @@ from .losses import OrbitTerms, objective_of
 from .options import TrainConfig
 from .penalties import penalty_sum
 
-# phases of the variational integration per sample: Runge-Kutta steps two of them long
-# (the step's midpoint is a phase of the grid), two steps per sample
+# phases per sample where the vector field is matched and its Jacobian taken: the variational
+# integration's Runge-Kutta steps are two phases long (a step's midpoint is a phase of the
+# grid), one step per sample
 FINE = 2
 
 
