@@ -44,8 +44,10 @@ FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rou
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 # the guide orbits (periodic training of the network, without the rounds above)
 GUIDE_FLAGS = ["--guide-orbits", "10", "--guide-weight", "0.5", "--seed", "4"]
-# the guide rounds (on by default; another count, and the first round's weight)
-ROUND_FLAGS = ["--guide-rounds", "3", "--guide-weight", "0.2", "--seed", "6"]
+# the guide rounds (on by default; another count, and the first round's weight), and the
+# first training by shooting instead of collocation
+ROUND_FLAGS = ["--guide-rounds", "3", "--guide-weight", "0.2", "--seed", "6",
+               "--no-collocation"]
 # fit options the pipeline refuses (tests/test_ude_control_input.py checks the refusal)
 FIT_ONLY_FLAGS = ["--control-input", "--control-gain", "2.5",
                   "--add", "heave_unsteady_aero", "pitch_freeplay=0.01"]

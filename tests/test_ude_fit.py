@@ -238,6 +238,8 @@ def test_empty_folder_is_one_line_error(tmp_path):
     (["--approximator", "gp", "--param-dependence", "polynomial"], "--param-dependence"),
     (["--energy-rising", "-1"], "--energy-rising"),
     (["--approximator", "gp", "--energy-rising", "1"], "--energy-rising"),
+    (["--training", "trajectory", "--collocation"], "--collocation"),
+    (["--approximator", "gp", "--collocation"], "--collocation"),
 ])
 def test_bad_options_name_the_option(flutter_fit, tmp_path, args, word):
     base = ["fit", str(flutter_fit["data"]), "--out", str(tmp_path / "o")]

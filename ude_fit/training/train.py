@@ -9,7 +9,10 @@ The stages, in the order :func:`train_ude` runs them (losses in :mod:`.losses`):
 * ``periodic`` (beyond the paper): closed model orbits through the measured ones, with
   the stability the data says they have; with ``amplitude_stages`` (aerofoil,
   experimental) first on the smallest orbit, then one orbit more per stage in order of
-  amplitude (:func:`.branch.amplitude_stages`).
+  amplitude (:func:`.branch.amplitude_stages`). With ``collocation`` its first, long
+  training runs on the same objective with every orbit collocated (:mod:`.collocation`,
+  a sixth of shooting's cost per step), and the periodic stage's own steps finish it by
+  shooting.
 * ``constraints`` (aerofoil, ``constraint_rounds`` > 0): where the periodic fit breaks
   the energy-rising or rest-stability condition, training goes on with the broken penalty
   weighted from the data's misfit (:func:`.rounds.enforce_constraints`); a fit that meets
