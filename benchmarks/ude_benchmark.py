@@ -221,12 +221,14 @@ def _median_ms(step, args, repeats: int) -> float:
 def _periodic_step(path: str, repeats: int = 20) -> dict:
     """Milliseconds of one periodic training step (value and gradient, the default 2x12
     network, median of ``repeats`` after compiling), the plain network against the rest-free
-    one, on the same orbits, initial weights and mechanistic model."""
+    one, on the same orbits, initial weights and mechanistic model; and the rest-free one's
+    step with the orbits collocated instead of shot."""
     import equinox as eqx
     import jax.numpy as jnp
     from ude_fit import load
     from ude_fit.fitting import identify_mechanistic, prepare
     from ude_fit.models.ude import UDE
+    from ude_fit.training.collocation import collocation_loss, collocation_unknowns
     from ude_fit.training.losses import periodic_loss
     from ude_fit.training.options import TrainConfig
     from ude_fit.training.train import _trainable_spec, new_correction
@@ -250,6 +252,12 @@ def _periodic_step(path: str, repeats: int = 20) -> dict:
         out[f"rest_free_substeps_{substeps}_ms"] = _median_ms(
             step, (params, static, mech, data, cfg, None), repeats)
     out["default_substeps"] = TrainConfig().for_system("flutter").substeps
+    # the collocated step (the default first training's), the same orbits, weights and model
+    cfg = TrainConfig().for_system("flutter")
+    cparams = {"corr": params["corr"], **collocation_unknowns(data, mech.autonomous)}
+    out["collocation_ms"] = _median_ms(eqx.filter_jit(jax.value_and_grad(collocation_loss)),
+                                       (cparams, static, mech, data, cfg, None), repeats)
+    out["shooting_over_collocation"] = round(out["rest_free_ms"] / out["collocation_ms"], 2)
     return out
 
 
