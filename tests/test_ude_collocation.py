@@ -1,6 +1,8 @@
 """The periodic objective by collocation (ude_fit.training.collocation) against shooting's
 (ude_fit.training.losses.orbit_terms) on the aerofoil model's own limit cycles, its monodromy
-matrix against a linear system's exact one, and the hand-over to shooting."""
+matrix against a linear system's exact one, the orbits' series solved for the model
+(ude_fit.training.projection) and its normal matrix against the dense product, and the
+hand-over to shooting."""
 from __future__ import annotations
 
 import jax  # noqa: E402
@@ -11,9 +13,11 @@ from scipy.linalg import expm
 
 from ude_fit.models.flow import ordered_product, rk4_orbit, rk4_orbit_monodromy
 from ude_fit.models.mechanistic import Drive
-from ude_fit.training import collocation
-from ude_fit.training.collocation import (Basis, collocation_terms, collocation_unknowns,
-                                          harmonics_of, monodromy, shooting_unknowns)
+from ude_fit.training import projection
+from ude_fit.training.collocation import (FreeSeries, collocation_terms, collocation_unknowns,
+                                          monodromy, orbit_series, shooting_unknowns)
+from ude_fit.training.fourier import Basis, harmonics_of
+from ude_fit.training.projection import OrbitResiduals
 from ude_fit.training.identify import TrainingData
 from ude_fit.training.losses import orbit_terms, orbit_unknowns
 from ude_fit.training.options import TrainConfig
@@ -92,22 +96,141 @@ def test_an_odd_number_of_steps_multiplies_in_order():
 
 
 def test_shooting_starts_where_the_series_does(traced):
-    _, data, _ = traced
+    model, data, _ = traced
+    cfg = TrainConfig().for_system("flutter")
     zero = collocation_unknowns(data, True)
     # (all but the samples' Nyquist component, which the series leaves out)
-    assert np.max(np.abs(np.asarray(shooting_unknowns(zero, data)["dy0"]))) < 1e-6
+    assert np.max(np.abs(np.asarray(shooting_unknowns(model, zero, data, cfg)["dy0"]))) < 1e-6
     rng = np.random.default_rng(0)
     moved = {**zero, "dC": jnp.asarray(rng.normal(size=zero["dC"].shape) * 0.01),
              "dT": jnp.asarray([0.01, -0.02, 0.0])}
     basis = Basis.of(SAMPLES)
-    C = np.asarray(collocation._orbit_series(basis, data, moved["dC"]))
+    C = np.asarray(FreeSeries().series(model, moved, data, cfg))
     at_zero = np.asarray(basis.samples)[0] @ C                  # (orbits, states)
-    got = shooting_unknowns(moved, data)
+    got = shooting_unknowns(model, moved, data, cfg)
     np.testing.assert_allclose(np.asarray(got["dy0"]),
                                (at_zero - np.asarray(data.ys[:, 0])) / np.asarray(data.y_scale),
                                rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(np.asarray(got["dT"]), np.asarray(moved["dT"]))
     assert harmonics_of(SAMPLES) == 15
+
+
+SOLVED = TrainConfig(collocation_series="solved").for_system("flutter")
+
+
+def _moved(data, dv=2.0):
+    """The same orbits at another airspeed: not the model's orbits there."""
+    return TrainingData(data.ys, data.qdd, data.period,
+                        Drive(data.drive.param + dv, data.drive.omega, data.drive.fc),
+                        data.label, data.y_scale, data.amp_max)
+
+
+def _orbit_objective(model, data, k, weight):
+    """Orbit k's misfit plus ``weight`` times its defect, as a function of its series."""
+    basis = Basis.of(SAMPLES)
+    drive = jax.tree_util.tree_map(lambda x: x[k], data.drive)
+    res = OrbitResiduals.of(model.at_drive(drive), drive, basis, data.ys[k], data.period[k],
+                            jnp.ones(data.ys.shape[2]), data.y_scale)
+    return res, lambda C: (jnp.sum(res.misfit(C) ** 2)
+                           + weight * jnp.sum(res.defect(C, res.field(C)[1]) ** 2))
+
+
+def test_the_normal_matrix_is_the_residuals_gram_matrix(traced):
+    """The Gauss-Newton matrix and gradient formed from Fourier transforms of the field's
+    Jacobians are the dense Jacobian's J^T J and J^T r (to rounding), here 2 m/s off the
+    model's orbits where the defect is large."""
+    model, data, _ = traced
+    w = SOLVED.closure_weight
+    moved = _moved(data)
+    res, _ = _orbit_objective(model, moved, 0, w)
+    C = Basis.of(SAMPLES).through(moved.ys[0])
+    H, g = res.normal_equations(C, w)
+
+    def residual(c):
+        return jnp.concatenate([res.misfit(c).reshape(-1),
+                                np.sqrt(w) * res.defect(c, res.field(c)[1]).reshape(-1)])
+    A = jax.jacfwd(lambda c: residual(c.reshape(C.shape)))(C.reshape(-1))
+    np.testing.assert_allclose(np.asarray(H), np.asarray(A.T @ A), rtol=1e-9,
+                               atol=1e-12 * float(jnp.max(jnp.abs(H))))
+    np.testing.assert_allclose(np.asarray(g), np.asarray(A.T @ residual(C)), rtol=1e-9,
+                               atol=1e-12 * float(jnp.max(jnp.abs(g))))
+
+
+def test_an_exact_orbit_is_its_own_solved_series(traced):
+    model, data, label = traced
+    terms = collocation_terms(model, collocation_unknowns(data, True, series="solved"), data,
+                              SOLVED)
+    assert np.all(np.asarray(terms.fit) < 1e-12)
+    assert np.all(np.asarray(terms.closure) < 1e-6)
+    assert np.all(np.sign(np.asarray(terms.indicator)) == label)
+
+
+def test_the_series_are_solved_for_the_model(traced):
+    """Each orbit's series is the minimum of its misfit plus the weighted defect for the
+    model of the moment (variable projection): near the model's orbits (the same orbits
+    0.5 m/s off) the objective's gradient in the series all but vanishes and more
+    Gauss-Newton steps change the sum by under 1 %; 2 m/s off the steps are cut back but
+    still lower it."""
+    model, data, _ = traced
+    w = SOLVED.closure_weight
+    basis = Basis.of(SAMPLES)
+    for dv, converged_to in ((0.5, 0.02), (2.0, None)):
+        moved = _moved(data, dv)
+        unknowns = collocation_unknowns(moved, True, series="solved")
+        assert set(unknowns) == {"dT"}          # the series are not the optimiser's
+        C = orbit_series(model, unknowns, moved, SOLVED)
+        measured = basis.through(moved.ys)
+        for k in range(moved.n_orbits):
+            _, J = _orbit_objective(model, moved, k, w)
+            assert float(J(C[k])) < 0.9 * float(J(measured[k]))
+            if converged_to is not None:    # near the model's orbits: all but converged
+                g0 = np.linalg.norm(np.asarray(jax.grad(J)(measured[k])))
+                g = np.linalg.norm(np.asarray(jax.grad(J)(C[k])))
+                assert g < converged_to * g0
+    moved = _moved(data, 0.5)
+    unknowns = collocation_unknowns(moved, True, series="solved")
+    steps = projection.SERIES_STEPS
+    try:
+        projection.SERIES_STEPS = 8
+        converged = collocation_terms(model, unknowns, moved, SOLVED)
+    finally:
+        projection.SERIES_STEPS = steps
+    got = collocation_terms(model, unknowns, moved, SOLVED)
+    total = np.asarray(got.fit + w * got.closure)
+    want = np.asarray(converged.fit + w * converged.closure)
+    assert np.all(total >= want * (1 - 1e-9))
+    np.testing.assert_allclose(total, want, rtol=1e-2)
+
+
+def test_the_objective_has_no_gradient_through_the_solve(traced):
+    """The model's gradient is the objective's at fixed series (at the inner minimum the
+    series' own change moves it by nothing to first order): a finite difference in the
+    airspeed, series solved again each time, matches the derivative at fixed series."""
+    model, data, _ = traced
+    w = SOLVED.closure_weight
+
+    def total(dv):
+        moved = _moved(data, dv)
+        t = collocation_terms(model, collocation_unknowns(moved, True, series="solved"),
+                              moved, SOLVED)
+        return jnp.sum(t.fit + w * t.closure)
+    h = 1e-3
+    fd = (float(total(0.5 + h)) - float(total(0.5 - h))) / (2 * h)
+    np.testing.assert_allclose(float(jax.grad(total)(0.5)), fd, rtol=2e-2)
+
+
+def test_shooting_starts_where_the_solved_series_does(traced):
+    model, data, _ = traced
+    moved_data = _moved(data)
+    moved = {"dT": jnp.asarray([0.01, -0.02, 0.0])}
+    C = np.asarray(orbit_series(model, moved, moved_data, SOLVED))
+    at_zero = np.asarray(Basis.of(SAMPLES).samples)[0] @ C      # (orbits, states)
+    got = shooting_unknowns(model, moved, moved_data, SOLVED)
+    np.testing.assert_allclose(np.asarray(got["dy0"]),
+                               (at_zero - np.asarray(data.ys[:, 0])) / np.asarray(data.y_scale),
+                               rtol=1e-12, atol=1e-12)
+    assert np.max(np.abs(np.asarray(got["dy0"]))) > 1e-4      # the series moved
+    np.testing.assert_array_equal(np.asarray(got["dT"]), np.asarray(moved["dT"]))
 
 
 def test_the_stagewise_monodromy_is_the_flows_derivative(traced):

@@ -240,6 +240,9 @@ def test_empty_folder_is_one_line_error(tmp_path):
     (["--approximator", "gp", "--energy-rising", "1"], "--energy-rising"),
     (["--training", "trajectory", "--collocation"], "--collocation"),
     (["--approximator", "gp", "--collocation"], "--collocation"),
+    (["--collocation-series", "exact"], "--collocation-series"),
+    (["--no-collocation", "--collocation-series", "solved"], "--collocation-series"),
+    (["--approximator", "gp", "--collocation-series", "solved"], "--collocation-series"),
 ])
 def test_bad_options_name_the_option(flutter_fit, tmp_path, args, word):
     base = ["fit", str(flutter_fit["data"]), "--out", str(tmp_path / "o")]

@@ -73,7 +73,7 @@ def add_data_arguments(p) -> None:
 def add_fit_arguments(p) -> None:
     """Every option of a fit (:class:`FitOptions`): the same flags, the same defaults, for
     every command that fits."""
-    from ..training.options import DEFAULT_STARTS
+    from ..training.options import COLLOCATION_SERIES, DEFAULT_STARTS
     from ..training.penalties import PENALTIES
 
     p.add_argument("--approximator", default="nn", choices=("nn", "gp"),
@@ -165,6 +165,12 @@ def add_fit_arguments(p) -> None:
                    "orbit collocated, a free Fourier series the model's vector field must "
                    "follow, instead of integrated; the periodic stage's shooting steps "
                    "finish it (docs/fitting.md)")
+    p.add_argument("--collocation-series", choices=COLLOCATION_SERIES, default="free",
+                   help="with --collocation: where the orbits' series come from; free, "
+                   "unknowns of the optimiser beside the model (the default), or solved for "
+                   "the model at every step (variable projection: about twice the cost of a "
+                   "step, and no lag of the series behind the network on noisy orbits; "
+                   "docs/fitting.md)")
     p.add_argument("--parameter-errors", action="store_true",
                    help="aerofoil, periodic training, experimental: every orbit's airspeed "
                    "is an unknown too, off its measured value at a cost set by the data's own "
@@ -276,6 +282,7 @@ def fit_options(args):
                           backbone_margins=args.backbone_margins,
                           from_mechanistic=args.from_mechanistic,
                           collocation=args.collocation,
+                          collocation_series=args.collocation_series,
                           **({} if args.stability_margin is None
                              else {"stability_margin": args.stability_margin}),
                           branch_rounds=args.branch_rounds,

@@ -1,17 +1,16 @@
-"""The periodic objective by collocation: every orbit a free truncated Fourier series, the
+"""The periodic objective by collocation: every orbit a truncated Fourier series, the
 model's vector field asked to match its derivative, instead of an integration from a free
 initial state (the shooting of :func:`.losses.orbit_terms`).
 
 Shooting integrates every orbit over a period at every step, a chain of a few hundred small
 operations (four Runge-Kutta stages per step), and that chain, not the arithmetic, is what a
-step costs on a CPU. Here
-the orbit is an unknown of its own, its samples a linear map of its coefficients, and the
-model is evaluated at every phase at once: the whole step is a handful of batched products.
-The same terms come out (:class:`.losses.OrbitTerms`): the misfit of the samples, a *defect*
-where shooting has its closure, and the stability indicators of a monodromy matrix, which is
-the product of the Runge-Kutta propagators of the variational equation along the series
-(each propagator a function of the Jacobian at three phases, so the product needs no
-sequential integration: it is formed as a balanced tree of matrix products).
+step costs on a CPU. Here the model is evaluated at every phase at once: the whole step is
+a handful of batched products. The same terms come out (:class:`.losses.OrbitTerms`): the
+misfit of the samples, a *defect* where shooting has its closure, and the stability
+indicators of a monodromy matrix, which is the product of the Runge-Kutta propagators of
+the variational equation along the series (each propagator a function of the Jacobian at
+three phases, so the product needs no sequential integration: it is formed as a balanced
+tree of matrix products).
 
 The defect is the vector field's mismatch with the series' derivative, each state over its
 scale and the orbit's angular frequency, squared and averaged over the phases, times
@@ -20,11 +19,15 @@ by 2 pi delta of the state's scale, which is what the shooting closure measures.
 objectives weigh a model that does not close its orbit alike, and the closure weight serves
 both.
 
+Where the series come from is the option ``collocation_series``: unknowns of the optimiser
+beside the model (:class:`FreeSeries`, the default), or solved for the model at every
+evaluation (:class:`SolvedSeries`, :mod:`.projection`).
+
 What collocation leaves out is the series' truncation: an orbit with harmonics above
-:func:`harmonics_of`'s is not represented, and the monodromy matrix is a Runge-Kutta
-approximation at the sample spacing (one step per sample). It is therefore the first,
-long training of a start (:func:`.train._train`), which the shooting objective finishes,
-from the initial states and periods collocation found (:func:`shooting_unknowns`).
+:func:`.fourier.harmonics_of`'s is not represented, and the monodromy matrix is a
+Runge-Kutta approximation at the sample spacing (one step per sample). It is therefore the
+first, long training of a start (:func:`.train._train`), which the shooting objective
+finishes, from the initial states and periods collocation found (:func:`shooting_unknowns`).
 """
 
 from __future__ import annotations
@@ -37,59 +40,41 @@ import numpy as np
 from ..models.amplitude import resolve
 from ..models.flow import ordered_product, rk4_propagator
 from ..models.ude import UDE
+from .fourier import FINE, Basis, harmonics_of
 from .identify import TrainingData
 from .losses import OrbitTerms, objective_of
 from .options import TrainConfig
 from .penalties import penalty_sum
-
-# phases per sample where the vector field is matched and its Jacobian taken: the variational
-# integration's Runge-Kutta steps are two phases long (a step's midpoint is a phase of the
-# grid), one step per sample
-FINE = 2
+from .projection import OrbitResiduals, solve
 
 
-def harmonics_of(n: int) -> int:
-    """The harmonics an orbit of ``n`` samples per period carries: all below the Nyquist
-    frequency (whose cosine alone the samples cannot tell from aliasing)."""
-    return (n - 1) // 2
-
-
-class Basis(eqx.Module):
-    """Linear maps from an orbit's Fourier coefficients (``2k + 1`` per state, a0, a1..ak,
-    b1..bk) to its samples at the ``n`` measured phases, and to its values and phase
-    derivatives at ``FINE * n`` phases; and the analysis map from the samples back."""
-    analysis: jax.Array     # (2k+1, n)
-    samples: jax.Array      # (n, 2k+1)
-    fine: jax.Array         # (FINE n, 2k+1)
-    fine_slope: jax.Array   # (FINE n, 2k+1): d/dphi
+class Orbits(eqx.Module):
+    """What every orbit's terms take besides its series: period, drive (the parameter
+    offset applied), the offset's prior cost and each state's misfit weight."""
+    period: jax.Array
+    drive: object
+    prior: jax.Array
+    state_weight: jax.Array
 
     @staticmethod
-    def of(n: int) -> "Basis":
-        k = harmonics_of(n)
-        j = np.arange(1, k + 1)
-
-        def synth(phi):
-            return np.concatenate([np.ones((phi.size, 1)), np.cos(np.outer(phi, j)),
-                                   np.sin(np.outer(phi, j))], axis=1)
-
-        def slope(phi):
-            return np.concatenate([np.zeros((phi.size, 1)), -j * np.sin(np.outer(phi, j)),
-                                   j * np.cos(np.outer(phi, j))], axis=1)
-
-        phi = 2 * np.pi * np.arange(n) / n
-        fine = 2 * np.pi * np.arange(FINE * n) / (FINE * n)
-        analysis = np.concatenate([np.full((1, n), 1.0 / n), 2.0 / n * np.cos(np.outer(j, phi)),
-                                   2.0 / n * np.sin(np.outer(j, phi))], axis=0)
-        return Basis(jnp.asarray(analysis), jnp.asarray(synth(phi)),
-                     jnp.asarray(synth(fine)), jnp.asarray(slope(fine)))
+    def of(params: dict, data: TrainingData, autonomous: bool) -> "Orbits":
+        T = data.period * (1.0 + params["dT"]) if autonomous else data.period
+        drive, prior = data.drive, jnp.zeros(data.period.shape)
+        if "dP" in params:
+            errors = data.param_errors
+            drive = eqx.tree_at(lambda d: d.param, drive,
+                                drive.param + errors.sigma * params["dP"])
+            prior = errors.cost * params["dP"] ** 2
+        if autonomous:      # an imposed input is periodic in the orbit's own period
+            drive = eqx.tree_at(lambda d: d.omega, drive, 2.0 * jnp.pi / T)
+        state_weight = (jnp.ones(data.ys.shape[::2]) if data.state_weight is None
+                        else data.state_weight)
+        return Orbits(T, drive, prior, state_weight)
 
 
-def collocation_unknowns(data: TrainingData, autonomous: bool, lead: tuple = ()) -> dict:
-    """Collocation's unknowns besides the model, scaled offsets from the measured values:
-    every orbit's Fourier coefficients (each state over its scale), its period where the
-    system is autonomous, its parameter where the data says it may be in error."""
-    n_o, n, n_s = data.ys.shape
-    unknowns = {"dC": jnp.zeros(lead + (n_o, 2 * harmonics_of(n) + 1, n_s))}
+def _offsets(data: TrainingData, autonomous: bool, lead: tuple) -> dict:
+    """The period and parameter offsets, scaled, where the fit has them."""
+    unknowns = {}
     if autonomous:
         unknowns["dT"] = jnp.zeros(lead + data.period.shape)
     if data.param_errors is not None:
@@ -97,31 +82,71 @@ def collocation_unknowns(data: TrainingData, autonomous: bool, lead: tuple = ())
     return unknowns
 
 
-def _harmonic_order(n: int) -> np.ndarray:
-    """(2k + 1, 1) each coefficient's harmonic number, the mean's counted as 1."""
-    k = harmonics_of(n)
-    j = np.arange(1, k + 1)
-    return np.concatenate([[1], j, j]).astype(float)[:, None]
+class FreeSeries:
+    """Every orbit's Fourier coefficients unknowns of the optimiser, as offsets from the
+    series through the measured samples, each state over its scale and harmonic j's over
+    j: the derivative multiplies harmonic j by j, so a step of one size in every unknown
+    moves the orbit's derivative by one size in every harmonic, and an optimiser whose
+    steps are scale-free (Adam) does not stir the high harmonics, whose own values are
+    small, into a defect larger than the fit it is after. Cheapest per step; on noisy
+    orbits the series lag the network (:mod:`.projection`)."""
+
+    def unknowns(self, data: TrainingData, autonomous: bool, lead: tuple = ()) -> dict:
+        n_o, n, n_s = data.ys.shape
+        return {"dC": jnp.zeros(lead + (n_o, 2 * harmonics_of(n) + 1, n_s)),
+                **_offsets(data, autonomous, lead)}
+
+    def series(self, model, params: dict, data: TrainingData, cfg: TrainConfig):
+        basis = Basis.of(data.ys.shape[1])
+        k = harmonics_of(data.ys.shape[1])
+        order = np.concatenate([[1], np.arange(1, k + 1), np.arange(1, k + 1)])[:, None]
+        return basis.through(data.ys) + params["dC"] * data.y_scale / order
 
 
-def _orbit_series(basis: Basis, data: TrainingData, dC):
-    """Every orbit's coefficients: the measured samples' plus the offsets, harmonic j's
-    over j. The derivative multiplies harmonic j by j, so a step of one size in every
-    unknown moves the orbit's derivative by one size in every harmonic: an optimiser whose
-    steps are scale-free (Adam) then does not stir the high harmonics, whose own values are
-    small, into a defect larger than the fit it is after."""
-    C0 = jnp.einsum("kn,ons->oks", basis.analysis, data.ys)
-    return C0 + dC * data.y_scale / _harmonic_order(data.ys.shape[1])
+class SolvedSeries:
+    """Every orbit's series solved for the model of the moment (variable projection,
+    :mod:`.projection`), from the series through its measured samples: the unknowns are
+    the model and the offsets only, and the model's gradient is taken at the solved
+    series. A step costs about twice a free one's."""
+
+    def unknowns(self, data: TrainingData, autonomous: bool, lead: tuple = ()) -> dict:
+        return _offsets(data, autonomous, lead)
+
+    def series(self, model, params: dict, data: TrainingData, cfg: TrainConfig):
+        basis = Basis.of(data.ys.shape[1])
+        orbits = Orbits.of(params, data, model.mech.autonomous)
+
+        def one(ys, T, drive, sw):
+            res = OrbitResiduals.of(model.at_drive(drive), drive, basis, ys, T, sw,
+                                    data.y_scale)
+            return solve(res, basis.through(ys), cfg.closure_weight)
+        return jax.vmap(one)(data.ys, orbits.period, orbits.drive, orbits.state_weight)
 
 
-def shooting_unknowns(params: dict, data: TrainingData) -> dict:
+SERIES = {"free": FreeSeries(), "solved": SolvedSeries()}
+
+
+def collocation_unknowns(data: TrainingData, autonomous: bool, lead: tuple = (),
+                         series: str = "free") -> dict:
+    """Collocation's unknowns besides the model, scaled offsets from the measured values:
+    with free series every orbit's coefficients, its period where the system is
+    autonomous, its parameter where the data says it may be in error."""
+    return SERIES[series].unknowns(data, autonomous, lead)
+
+
+@eqx.filter_jit
+def orbit_series(model, params: dict, data: TrainingData, cfg: TrainConfig):
+    """(orbits, 2k+1, states) every orbit's series as the collocated objective has it."""
+    return SERIES[cfg.collocation_series].series(model, params, data, cfg)
+
+
+def shooting_unknowns(model, params: dict, data: TrainingData, cfg: TrainConfig) -> dict:
     """The shooting objective's unknowns (:func:`.losses.orbit_unknowns`) where collocation
     left the orbits: each initial state the series' value at phase 0 (a shooting orbit
     starts at the first measured sample's phase), the period and parameter offsets as they
     are."""
-    basis = Basis.of(data.ys.shape[1])
-    C = _orbit_series(basis, data, params["dC"])
-    y0 = C[..., 0, :] + jnp.sum(C[..., 1:harmonics_of(data.ys.shape[1]) + 1, :], axis=-2)
+    C = orbit_series(model, params, data, cfg)
+    y0 = Basis.of(data.ys.shape[1]).at_start(C)
     out = {"dy0": (y0 - data.ys[:, 0, :]) / data.y_scale}
     return {**out, **{k: v for k, v in params.items() if k in ("dT", "dP")}}
 
@@ -137,48 +162,27 @@ def monodromy(J, T):
 
 
 def collocation_terms(model, params, data: TrainingData, cfg: TrainConfig) -> OrbitTerms:
-    """Every orbit of ``data`` as the series in ``params``: its misfit to the measured
-    samples, its defect as the model's orbit (in the closure's place), and its stability
-    from the variational equation along it."""
+    """Every orbit of ``data`` as its series (``cfg.collocation_series``): its misfit to
+    the measured samples, its defect as the model's orbit (in the closure's place), and its
+    stability from the variational equation along it."""
     mech = model.mech
-    n = data.ys.shape[1]
-    basis = Basis.of(n)
-    C = _orbit_series(basis, data, params["dC"])          # (orbits, 2k+1, states)
-    autonomous = mech.autonomous
-    T = data.period * (1.0 + params["dT"]) if autonomous else data.period
-    drive, prior = data.drive, jnp.zeros(data.period.shape)
-    if "dP" in params:
-        errors = data.param_errors
-        drive = eqx.tree_at(lambda d: d.param, drive, drive.param + errors.sigma * params["dP"])
-        prior = errors.cost * params["dP"] ** 2
-    state_weight = (jnp.ones(data.ys.shape[::2]) if data.state_weight is None
-                    else data.state_weight)
-    t_fine = jnp.arange(FINE * n) / (FINE * n)
+    basis = Basis.of(data.ys.shape[1])
+    orbits = Orbits.of(params, data, mech.autonomous)
+    C = SERIES[cfg.collocation_series].series(model, params, data, cfg)
 
     def one(ys, Ck, T, drive, sw):
-        if autonomous:      # an imposed input is periodic in the orbit's own period
-            drive = eqx.tree_at(lambda d: d.omega, drive, 2.0 * jnp.pi / T)
-        frozen = model.at_drive(drive)
-        omega = 2.0 * jnp.pi / T
-        sim = basis.samples @ Ck
-        fit = jnp.mean(((sim - ys) / data.y_scale) ** 2 * sw) / jnp.mean(sw)
-        y = basis.fine @ Ck
-        dy = omega * (basis.fine_slope @ Ck)
-
-        def field(t, yy):
-            f = frozen.vector_field(t, yy, drive)
-            return f, f
-        J, f = jax.vmap(jax.jacfwd(field, argnums=1, has_aux=True))(T * t_fine, y)
-        defect = (2.0 * jnp.pi) ** 2 * jnp.sum(
-            jnp.mean(((dy - f) / (omega * data.y_scale)) ** 2, axis=0))
+        res = OrbitResiduals.of(model.at_drive(drive), drive, basis, ys, T, sw, data.y_scale)
+        J, f = res.field(Ck)
         M = monodromy(J, T)
         fold = mech.stability_indicator(M)
         secondary = (mech.secondary_indicators(M, fold) if mech.holds_secondary_tests
                      else jnp.full(2, jnp.inf))
-        return fit, defect, fold, secondary
+        return (jnp.sum(res.misfit(Ck) ** 2), jnp.sum(res.defect(Ck, f) ** 2), fold,
+                secondary)
 
-    fit, defect, indicator, secondary = jax.vmap(one)(data.ys, C, T, drive, state_weight)
-    return OrbitTerms(fit, defect, indicator, secondary, prior)
+    fit, defect, indicator, secondary = jax.vmap(one)(
+        data.ys, C, orbits.period, orbits.drive, orbits.state_weight)
+    return OrbitTerms(fit, defect, indicator, secondary, orbits.prior)
 
 
 def collocation_loss(params, static, mech, data: TrainingData, cfg: TrainConfig, reg=None):

@@ -109,10 +109,16 @@ class TrainConfig:
     start_adam_steps: int = 3000
     start_lbfgs_steps: int = 600
     # periodic training: a start's first training (with from_mechanistic the long one) on
-    # every orbit collocated (training.collocation: the orbit a free Fourier series)
+    # every orbit collocated (training.collocation: the orbit a Fourier series)
     # instead of shot, then the periodic stage's adam_steps and lbfgs_steps by shooting from
     # where it left the orbits (None: as from_mechanistic; docs/fitting.md)
     collocation: bool | None = None
+    # where collocation's series come from (training.collocation.SERIES): "free", unknowns
+    # of the optimiser beside the model, or "solved" for the model at every evaluation
+    # (variable projection, training.projection: a step costs about twice a free one's; on
+    # noisy simulated campaigns it does not end where free series lag the network;
+    # docs/fitting.md)
+    collocation_series: str = "free"
 
     def __post_init__(self):
         for name in ("width", "depth"):
@@ -147,6 +153,9 @@ class TrainConfig:
                              f"{self.param_dependence!r}")
         if self.form not in FORMS:
             raise ValueError(f"form must be {' or '.join(FORMS)}, not {self.form!r}")
+        if self.collocation_series not in COLLOCATION_SERIES:
+            raise ValueError(f"collocation_series must be {' or '.join(COLLOCATION_SERIES)}, "
+                             f"not {self.collocation_series!r}")
         if self.form == "amplitude" and (self.rest_free or self.param_dependence != "input"):
             raise ValueError("--correction-form amplitude has its own linear terms and no "
                              "network: not with --rest-free or --param-dependence polynomial")
@@ -207,6 +216,8 @@ def _check_int(name: str, v, least: int) -> None:
 
 PARAM_DEPENDENCE = ("input", "polynomial")
 FORMS = ("network", "amplitude")
+# the keys of training.collocation.SERIES (which imports this module)
+COLLOCATION_SERIES = ("free", "solved")
 
 # Per-system defaults. The aerofoil's network is rest-free (the Hopf point is the
 # mechanistic model's and explicit linear terms', not the network's extrapolation to rest)
@@ -396,6 +407,10 @@ class FitOptions:
                 raise ValueError("/".join(nn_only) + " apply to --approximator nn only")
 
         object.__setattr__(self, "train", self._defaults_that_apply())
+        if self.train.collocation_series != "free" and not self.train.collocation:
+            raise ValueError(f"--collocation-series {self.train.collocation_series} needs "
+                             "collocation (on by default for the aerofoil's network on "
+                             "periodic orbits; --collocation elsewhere)")
         # (None here is the system's default, 7 rounds: _defaults_that_apply set it to 0
         # where the rounds do not apply)
         if self.train.constrain_unstable_branch and self.train.constraint_rounds == 0:

@@ -154,6 +154,17 @@ def refine_mechanistic(model: UDE, data: TrainingData, *, cfg: TrainConfig, prog
     return UDE(refined), {"loss": v}
 
 
+def _shooting_start(cparams, static, mech, data, cfg, lanes):
+    """Shooting's unknowns where collocation left each start (lane by lane in an
+    ensemble: solved series are solved for each start's own model)."""
+    def one(p):
+        model = resolve(UDE(mech, eqx.combine(p["corr"], static)))
+        return shooting_unknowns(model, p, data, cfg)
+    if lanes is None:
+        return one(cparams)
+    return _stack([one(lane_of(cparams, i)) for i in range(lanes)])
+
+
 def _stack(trees):
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
 
@@ -261,12 +272,14 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
             # the long first training on the collocated orbits; shooting finishes it with
             # the periodic stage's own steps, from the orbits collocation found
             cparams = {"corr": params["corr"],
-                       **collocation_unknowns(data, model.mech.autonomous, lead)}
+                       **collocation_unknowns(data, model.mech.autonomous, lead,
+                                              cfg.collocation_series)}
             cparams, loss, failed = descend(
                 collocation_loss, cparams, (static, mech, data, cfg, reg), lanes=lanes,
                 adam_steps=adam_steps, lbfgs_steps=lbfgs_steps, lr=cfg.learning_rate,
                 failed=failed, progress=progress, stage="collocation")
-            params = {"corr": cparams["corr"], **shooting_unknowns(cparams, data)}
+            params = {"corr": cparams["corr"],
+                      **_shooting_start(cparams, static, mech, data, cfg, lanes)}
             adam_steps, lbfgs_steps = cfg.adam_steps, cfg.lbfgs_steps
         params, loss, failed = descend(
             periodic_loss, params, (static, mech, data, cfg, reg), lanes=lanes,
