@@ -258,6 +258,14 @@ def _periodic_step(path: str, repeats: int = 20) -> dict:
     out["collocation_ms"] = _median_ms(eqx.filter_jit(jax.value_and_grad(collocation_loss)),
                                        (cparams, static, mech, data, cfg, None), repeats)
     out["shooting_over_collocation"] = round(out["rest_free_ms"] / out["collocation_ms"], 2)
+    # and with every orbit's series solved for the model (--collocation-series solved)
+    solved = TrainConfig(collocation_series="solved").for_system("flutter")
+    sparams = {"corr": params["corr"],
+               **collocation_unknowns(data, mech.autonomous, series="solved")}
+    out["collocation_solved_ms"] = _median_ms(
+        eqx.filter_jit(jax.value_and_grad(collocation_loss)),
+        (sparams, static, mech, data, solved, None), repeats)
+    out["solved_over_free"] = round(out["collocation_solved_ms"] / out["collocation_ms"], 2)
     return out
 
 
