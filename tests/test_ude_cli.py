@@ -42,8 +42,10 @@ FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rou
               "--monotone-rounds", "4", "--amplitude-stages", "--stability-margin", "0.05",
               "--backbone-margins"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
-# the guide orbits (periodic training of the network, without the rounds above)
-GUIDE_FLAGS = ["--guide-orbits", "10", "--guide-weight", "0.5", "--seed", "4"]
+# the guide orbits (periodic training of the network, without the rounds above), with
+# collocation's series solved for the model
+GUIDE_FLAGS = ["--guide-orbits", "10", "--guide-weight", "0.5", "--seed", "4",
+               "--collocation-series", "solved"]
 # the guide rounds (on by default; another count, and the first round's weight), and the
 # first training by shooting instead of collocation
 ROUND_FLAGS = ["--guide-rounds", "3", "--guide-weight", "0.2", "--seed", "6",
