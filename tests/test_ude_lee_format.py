@@ -59,3 +59,13 @@ def test_a_configuration_without_a_campaigns_two_orbits_is_refused(tmp_path):
         write_lee_campaign(tmp_path, ("k_alpha3=2000", "c_alpha=1.3", "m_T=18"), sigma=0.0,
                            seed=0, record_s=0.1)
     assert not list(tmp_path.glob("*.mat"))
+
+
+def test_a_point_the_board_did_not_hold_is_refused(tmp_path):
+    # the soft configuration's stable orbits (11-13 mm) under the board's largest noise: the
+    # response decays to rest while the target still asks for the orbit, which no CBC run
+    # would accept as a point
+    soft = ("k_alpha=26.03", "I_alpha=0.0829", "k_h=3529.4", "x_alpha=0.24")
+    with pytest.raises(ValueError, match="was not held"):
+        write_lee_campaign(tmp_path, soft, sigma=0.04, seed=0, n_speeds=3, n_stable=3,
+                           record_s=8.0)
