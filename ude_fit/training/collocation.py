@@ -42,7 +42,7 @@ from ..models.flow import ordered_product, rk4_propagator
 from ..models.ude import UDE
 from .fourier import FINE, Basis, harmonics_of
 from .identify import TrainingData
-from .losses import OrbitTerms, objective_of
+from .losses import OrbitTerms, objective_of, orbit_offsets
 from .options import TrainConfig
 from .penalties import penalty_sum
 from .projection import OrbitResiduals, solve
@@ -72,16 +72,6 @@ class Orbits(eqx.Module):
         return Orbits(T, drive, prior, state_weight)
 
 
-def _offsets(data: TrainingData, autonomous: bool, lead: tuple) -> dict:
-    """The period and parameter offsets, scaled, where the fit has them."""
-    unknowns = {}
-    if autonomous:
-        unknowns["dT"] = jnp.zeros(lead + data.period.shape)
-    if data.param_errors is not None:
-        unknowns["dP"] = jnp.zeros(lead + data.period.shape)
-    return unknowns
-
-
 class FreeSeries:
     """Every orbit's Fourier coefficients unknowns of the optimiser, as offsets from the
     series through the measured samples, each state over its scale and harmonic j's over
@@ -94,7 +84,7 @@ class FreeSeries:
     def unknowns(self, data: TrainingData, autonomous: bool, lead: tuple = ()) -> dict:
         n_o, n, n_s = data.ys.shape
         return {"dC": jnp.zeros(lead + (n_o, 2 * harmonics_of(n) + 1, n_s)),
-                **_offsets(data, autonomous, lead)}
+                **orbit_offsets(data, autonomous, lead)}
 
     def series(self, model, params: dict, data: TrainingData, cfg: TrainConfig):
         basis = Basis.of(data.ys.shape[1])
@@ -110,7 +100,7 @@ class SolvedSeries:
     series. A step costs about twice a free one's."""
 
     def unknowns(self, data: TrainingData, autonomous: bool, lead: tuple = ()) -> dict:
-        return _offsets(data, autonomous, lead)
+        return orbit_offsets(data, autonomous, lead)
 
     def series(self, model, params: dict, data: TrainingData, cfg: TrainConfig):
         basis = Basis.of(data.ys.shape[1])

@@ -144,7 +144,14 @@ def orbit_unknowns(data: TrainingData, autonomous: bool, lead: tuple = ()) -> di
     measured values (so one Adam step size suits metres, radians, seconds and m/s): every
     orbit's initial state, its period where the system is autonomous, its parameter where
     the data says it may be in error. ``lead``: a leading ensemble axis."""
-    unknowns = {"dy0": jnp.zeros(lead + data.ys[:, 0, :].shape)}
+    return {"dy0": jnp.zeros(lead + data.ys[:, 0, :].shape),
+            **orbit_offsets(data, autonomous, lead)}
+
+
+def orbit_offsets(data: TrainingData, autonomous: bool, lead: tuple = ()) -> dict:
+    """Every orbit's period offset where the system is autonomous and its parameter offset
+    where the data says it may be in error (scaled; shooting and collocation share them)."""
+    unknowns = {}
     if autonomous:
         unknowns["dT"] = jnp.zeros(lead + data.period.shape)
     if data.param_errors is not None:
