@@ -252,13 +252,14 @@ def _periodic_step(path: str, repeats: int = 20) -> dict:
         out[f"rest_free_substeps_{substeps}_ms"] = _median_ms(
             step, (params, static, mech, data, cfg, None), repeats)
     out["default_substeps"] = TrainConfig().for_system("flutter").substeps
-    # the collocated step (the default first training's), the same orbits, weights and model
-    cfg = TrainConfig().for_system("flutter")
+    # the collocated step with free series (the default plan's first leg), the same orbits,
+    # weights and model
+    cfg = TrainConfig(collocation_series="free").for_system("flutter")
     cparams = {"corr": params["corr"], **collocation_unknowns(data, mech.autonomous)}
     out["collocation_ms"] = _median_ms(eqx.filter_jit(jax.value_and_grad(collocation_loss)),
                                        (cparams, static, mech, data, cfg, None), repeats)
     out["shooting_over_collocation"] = round(out["rest_free_ms"] / out["collocation_ms"], 2)
-    # and with every orbit's series solved for the model (--collocation-series solved)
+    # and with every orbit's series solved for the model (the default plan's second leg)
     solved = TrainConfig(collocation_series="solved").for_system("flutter")
     sparams = {"corr": params["corr"],
                **collocation_unknowns(data, mech.autonomous, series="solved")}

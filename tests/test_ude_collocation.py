@@ -14,8 +14,9 @@ from scipy.linalg import expm
 from ude_fit.models.flow import ordered_product, rk4_orbit, rk4_orbit_monodromy
 from ude_fit.models.mechanistic import Drive
 from ude_fit.training import projection
-from ude_fit.training.collocation import (FreeSeries, collocation_terms, collocation_unknowns,
-                                          monodromy, orbit_series, shooting_unknowns)
+from ude_fit.training.collocation import (FREE_LEAD, PLANS, SERIES, FreeSeries,
+                                          collocation_terms, collocation_unknowns, monodromy,
+                                          orbit_series, plan_legs, shooting_unknowns)
 from ude_fit.training.fourier import Basis, harmonics_of
 from ude_fit.training.projection import OrbitResiduals
 from ude_fit.training.identify import TrainingData
@@ -26,6 +27,7 @@ from tests.model_orbits import traced_orbits
 jax.config.update("jax_enable_x64", True)
 
 SAMPLES, SUBSTEPS = 32, 8         # the fits' samples per period; a fine exact orbit
+FREE = TrainConfig(collocation_series="free").for_system("flutter")
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +41,7 @@ def traced():
 
 def test_an_exact_orbit_collocates_with_shootings_stability(traced):
     model, data, label = traced
-    cfg = TrainConfig(substeps=SUBSTEPS).for_system("flutter")
+    cfg = TrainConfig(substeps=SUBSTEPS, collocation_series="free").for_system("flutter")
     shot = orbit_terms(model, orbit_unknowns(data, True), data, cfg)
     col = collocation_terms(model, collocation_unknowns(data, True), data, cfg)
     # the measured samples are the series' samples, and the series is the model's orbit
@@ -60,7 +62,7 @@ def test_an_orbit_off_the_model_has_a_defect(traced):
     """The defect measures how far the series is from being the model's orbit: the same
     orbits at another airspeed are not the model's orbits there."""
     model, data, _ = traced
-    cfg = TrainConfig().for_system("flutter")
+    cfg = FREE
     moved = TrainingData(data.ys, data.qdd, data.period,
                        Drive(data.drive.param + 2.0, data.drive.omega, data.drive.fc),
                        data.label, data.y_scale, data.amp_max)
@@ -97,7 +99,7 @@ def test_an_odd_number_of_steps_multiplies_in_order():
 
 def test_shooting_starts_where_the_series_does(traced):
     model, data, _ = traced
-    cfg = TrainConfig().for_system("flutter")
+    cfg = FREE
     zero = collocation_unknowns(data, True)
     # (all but the samples' Nyquist component, which the series leaves out)
     assert np.max(np.abs(np.asarray(shooting_unknowns(model, zero, data, cfg)["dy0"]))) < 1e-6
@@ -256,3 +258,18 @@ def test_the_stagewise_monodromy_is_the_flows_derivative(traced):
         np.testing.assert_allclose(np.asarray(got_yT), np.asarray(yT), rtol=1e-13)
         np.testing.assert_allclose(np.asarray(got_ys), np.asarray(ys), rtol=1e-13,
                                    atol=1e-15)
+
+
+def test_a_plans_legs_share_the_first_trainings_steps():
+    assert plan_legs("free", 3000, 600) == [("free", 3000, 600)]
+    assert plan_legs("solved", 3000, 600) == [("solved", 3000, 600)]
+    legs = plan_legs("free-then-solved", 3000, 600)
+    assert [leg[0] for leg in legs] == ["free", "solved"]
+    assert legs[0][1] == round(FREE_LEAD * 3000) and legs[0][2] == 0
+    assert legs[0][1] + legs[1][1] == 3000 and legs[1][2] == 600
+    for steps in (0, 1, 7, 25):            # the legs' Adam steps add up to the training's
+        assert sum(adam for _, adam, _ in plan_legs("free-then-solved", steps, 5)) == steps
+    # every plan ends where its objective is evaluated: the series a plan ends with
+    for plan in PLANS:
+        assert PLANS[plan][-1].series in SERIES
+        assert TrainConfig(collocation_series=plan).collocation_series == plan

@@ -554,6 +554,49 @@ def test_a_start_from_the_mechanistic_model_skips_the_equation_stage(tmp_path):
     assert loss(model) < 0.8 * loss(fresh)
 
 
+def test_the_default_plan_collocates_with_free_series_then_solved_ones(tmp_path):
+    """The default --collocation-series: the first training's first Adam steps on free
+    series, the rest of them and its L-BFGS steps on solved ones, then the shooting finish
+    with the periodic stage's own steps; the start leaves the mechanistic model."""
+    import equinox as eqx
+    import jax
+
+    from ude_fit import UDE, identify, train_ude, training_data
+    from ude_fit.training.collocation import FREE_LEAD
+    from ude_fit.training.identify import augment
+    from ude_fit.training.losses import orbit_unknowns, periodic_loss
+    from ude_fit.training.train import _trainable_spec, new_correction
+    write_truth_campaign(tmp_path / "f.h5", "flutter", airspeeds=(18.0, 21.0, 23.6))
+    data = training_data(load([tmp_path / "f.h5"], "flutter"))
+    mech, _ = identify(data, "flutter")
+    data = augment(data, mech)
+    cfg = TrainConfig(from_mechanistic=True, collocation=True, start_adam_steps=150,
+                      start_lbfgs_steps=10, adam_steps=25, lbfgs_steps=3,
+                      constraint_rounds=0).for_system("flutter")
+    assert cfg.collocation_series == "free-then-solved"
+    events = []
+    key = jax.random.PRNGKey(2)
+    model, info = train_ude(UDE(mech), data, key=key, cfg=cfg, training="periodic",
+                            progress=lambda **kw: events.append(kw))
+    last = {}
+    for e in events:
+        last.setdefault(e["stage"], {})[e["optimiser"]] = (e["step"], e["steps"])
+    free = int(round(FREE_LEAD * 150))
+    assert last == {"collocation, free series": {"adam": (free, free)},
+                    "collocation, solved series": {"adam": (150 - free, 150 - free),
+                                                   "lbfgs": (10, 10)},
+                    "periodic": {"adam": (25, 25), "lbfgs": (3, 3)}}
+    assert [e["stage"] for e in events][0] == "collocation, free series"
+
+    def loss(m):
+        tr, st = eqx.partition(m.correction, _trainable_spec(m.correction))
+        params = {"corr": tr, **orbit_unknowns(data, True)}
+        return float(periodic_loss(params, st, mech, data, cfg))
+
+    fresh = UDE(mech, new_correction(UDE(mech), data, key, cfg))
+    assert loss(model) < 0.8 * loss(fresh)
+
+
 def test_a_point_at_a_model_fold_takes_the_stability_of_its_side(monkeypatch):
     """A measured unstable orbit a hair from the model's fold is compared with the orbit at
     the fold, which it may match only because the branch beside the fold is unstable; the

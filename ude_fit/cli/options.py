@@ -165,12 +165,13 @@ def add_fit_arguments(p) -> None:
                    "orbit collocated, a free Fourier series the model's vector field must "
                    "follow, instead of integrated; the periodic stage's shooting steps "
                    "finish it (docs/fitting.md)")
-    p.add_argument("--collocation-series", choices=COLLOCATION_SERIES, default="free",
+    p.add_argument("--collocation-series", choices=COLLOCATION_SERIES, default=None,
                    help="with --collocation: where the orbits' series come from; free, "
-                   "unknowns of the optimiser beside the model (the default), or solved for "
-                   "the model at every step (variable projection: about twice the cost of a "
-                   "step, and no lag of the series behind the network on noisy orbits; "
-                   "docs/fitting.md)")
+                   "unknowns of the optimiser beside the model; solved for the model at "
+                   "every step (variable projection: about twice the cost of a step, and no "
+                   "lag of the series behind the network on noisy orbits); or free for the "
+                   "first Adam steps, solved after them (free-then-solved, the "
+                   "default; docs/fitting.md)")
     p.add_argument("--parameter-errors", action="store_true",
                    help="aerofoil, periodic training, experimental: every orbit's airspeed "
                    "is an unknown too, off its measured value at a cost set by the data's own "

@@ -19,9 +19,10 @@ by 2 pi delta of the state's scale, which is what the shooting closure measures.
 objectives weigh a model that does not close its orbit alike, and the closure weight serves
 both.
 
-Where the series come from is the option ``collocation_series``: unknowns of the optimiser
-beside the model (:class:`FreeSeries`, the default), or solved for the model at every
-evaluation (:class:`SolvedSeries`, :mod:`.projection`).
+Where the series come from is the option ``collocation_series``, a plan (:data:`PLANS`):
+unknowns of the optimiser beside the model (:class:`FreeSeries`), solved for the model at
+every evaluation (:class:`SolvedSeries`, :mod:`.projection`), or, the default, free for the
+first steps and solved after them.
 
 What collocation leaves out is the series' truncation: an orbit with harmonics above
 :func:`.fourier.harmonics_of`'s is not represented, and the monodromy matrix is a
@@ -31,6 +32,8 @@ finishes, from the initial states and periods collocation found (:func:`shooting
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -115,19 +118,59 @@ class SolvedSeries:
 
 SERIES = {"free": FreeSeries(), "solved": SolvedSeries()}
 
+# The share of the first training's Adam steps that the default plan gives to free series
+# before it solves them: from the mechanistic model, whose orbits may lie nowhere near the
+# measured ones (lee2020: no limit cycle in the measured range), a series solved for the
+# model is a poor place to take the model's gradient (solved series from the start: six of
+# 16 starts stuck at 5-22 % on lee2020 seed 2), while free series follow the samples and
+# bring the model's orbits near them within the first few hundred steps. One value tried
+# (docs/experiments.md, fifty-ninth session), not tuned.
+FREE_LEAD = 1.0 / 6.0
+
+
+class Leg(NamedTuple):
+    """One leg of a plan: its series (a key of :data:`SERIES`), its share of the first
+    training's Adam steps, and whether the L-BFGS steps are its."""
+    series: str
+    adam_share: float
+    lbfgs: bool
+
+
+# --collocation-series: how the first training's steps go, leg by leg
+PLANS = {"free": (Leg("free", 1.0, True),),
+         "solved": (Leg("solved", 1.0, True),),
+         "free-then-solved": (Leg("free", FREE_LEAD, False), Leg("solved", 1.0 - FREE_LEAD, True))}
+
+
+def plan_legs(plan: str, adam_steps: int, lbfgs_steps: int) -> list[tuple[str, int, int]]:
+    """(series, Adam steps, L-BFGS steps) of each leg of ``plan``; the legs' Adam steps add
+    up to ``adam_steps``."""
+    legs, given = [], 0
+    for i, leg in enumerate(PLANS[plan]):
+        last = i == len(PLANS[plan]) - 1
+        adam = adam_steps - given if last else int(round(leg.adam_share * adam_steps))
+        given += adam
+        legs.append((leg.series, adam, lbfgs_steps if leg.lbfgs else 0))
+    return legs
+
+
+def _series_of(cfg: TrainConfig):
+    """The series a plan ends with: the one its objective, and shooting's start, are at."""
+    return SERIES[PLANS[cfg.collocation_series][-1].series]
+
 
 def collocation_unknowns(data: TrainingData, autonomous: bool, lead: tuple = (),
                          series: str = "free") -> dict:
     """Collocation's unknowns besides the model, scaled offsets from the measured values:
-    with free series every orbit's coefficients, its period where the system is
-    autonomous, its parameter where the data says it may be in error."""
+    with free series (a key of :data:`SERIES`) every orbit's coefficients, its period where
+    the system is autonomous, its parameter where the data says it may be in error."""
     return SERIES[series].unknowns(data, autonomous, lead)
 
 
 @eqx.filter_jit
 def orbit_series(model, params: dict, data: TrainingData, cfg: TrainConfig):
     """(orbits, 2k+1, states) every orbit's series as the collocated objective has it."""
-    return SERIES[cfg.collocation_series].series(model, params, data, cfg)
+    return _series_of(cfg).series(model, params, data, cfg)
 
 
 def shooting_unknowns(model, params: dict, data: TrainingData, cfg: TrainConfig) -> dict:
@@ -152,13 +195,14 @@ def monodromy(J, T):
 
 
 def collocation_terms(model, params, data: TrainingData, cfg: TrainConfig) -> OrbitTerms:
-    """Every orbit of ``data`` as its series (``cfg.collocation_series``): its misfit to
+    """Every orbit of ``data`` as its series (the one ``cfg.collocation_series`` ends with):
+    its misfit to
     the measured samples, its defect as the model's orbit (in the closure's place), and its
     stability from the variational equation along it."""
     mech = model.mech
     basis = Basis.of(data.ys.shape[1])
     orbits = Orbits.of(params, data, mech.autonomous)
-    C = SERIES[cfg.collocation_series].series(model, params, data, cfg)
+    C = _series_of(cfg).series(model, params, data, cfg)
 
     def one(ys, Ck, T, drive, sw):
         res = OrbitResiduals.of(model.at_drive(drive), drive, basis, ys, T, sw, data.y_scale)

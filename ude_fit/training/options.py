@@ -113,12 +113,14 @@ class TrainConfig:
     # instead of shot, then the periodic stage's adam_steps and lbfgs_steps by shooting from
     # where it left the orbits (None: as from_mechanistic; docs/fitting.md)
     collocation: bool | None = None
-    # where collocation's series come from (training.collocation.SERIES): "free", unknowns
-    # of the optimiser beside the model, or "solved" for the model at every evaluation
-    # (variable projection, training.projection: a step costs about twice a free one's; on
-    # noisy simulated campaigns it does not end where free series lag the network;
-    # docs/fitting.md)
-    collocation_series: str = "free"
+    # where collocation's series come from, a plan (training.collocation.PLANS): "free",
+    # unknowns of the optimiser beside the model; "solved" for the model at every
+    # evaluation (variable projection, training.projection: a step costs about twice a
+    # free one's; on noisy simulated campaigns it does not end where free series lag the
+    # network); "free-then-solved", free for the first Adam steps (FREE_LEAD of them: the
+    # mechanistic model's orbits may lie far from the measured ones), solved after them
+    # (None: the last; docs/fitting.md)
+    collocation_series: str | None = None
 
     def __post_init__(self):
         for name in ("width", "depth"):
@@ -153,8 +155,8 @@ class TrainConfig:
                              f"{self.param_dependence!r}")
         if self.form not in FORMS:
             raise ValueError(f"form must be {' or '.join(FORMS)}, not {self.form!r}")
-        if self.collocation_series not in COLLOCATION_SERIES:
-            raise ValueError(f"collocation_series must be {' or '.join(COLLOCATION_SERIES)}, "
+        if self.collocation_series not in (None, *COLLOCATION_SERIES):
+            raise ValueError(f"collocation_series must be {', '.join(COLLOCATION_SERIES)}, "
                              f"not {self.collocation_series!r}")
         if self.form == "amplitude" and (self.rest_free or self.param_dependence != "input"):
             raise ValueError("--correction-form amplitude has its own linear terms and no "
@@ -178,6 +180,8 @@ class TrainConfig:
             defaults["rest_free"] = False
         cfg = dataclasses.replace(self, **{k: v for k, v in defaults.items()
                                            if getattr(self, k) is None})
+        if cfg.collocation_series is None:
+            cfg = dataclasses.replace(cfg, collocation_series=DEFAULT_COLLOCATION_SERIES)
         if cfg.equation_lbfgs_steps is None:
             cfg = dataclasses.replace(cfg, equation_lbfgs_steps=cfg.lbfgs_steps)
         # the fit's defaults for these (FitOptions) depend on more than the system; a
@@ -216,8 +220,9 @@ def _check_int(name: str, v, least: int) -> None:
 
 PARAM_DEPENDENCE = ("input", "polynomial")
 FORMS = ("network", "amplitude")
-# the keys of training.collocation.SERIES (which imports this module)
-COLLOCATION_SERIES = ("free", "solved")
+# the keys of training.collocation.PLANS (which imports this module)
+COLLOCATION_SERIES = ("free", "solved", "free-then-solved")
+DEFAULT_COLLOCATION_SERIES = "free-then-solved"
 
 # Per-system defaults. The aerofoil's network is rest-free (the Hopf point is the
 # mechanistic model's and explicit linear terms', not the network's extrapolation to rest)
@@ -407,7 +412,7 @@ class FitOptions:
                 raise ValueError("/".join(nn_only) + " apply to --approximator nn only")
 
         object.__setattr__(self, "train", self._defaults_that_apply())
-        if self.train.collocation_series != "free" and not self.train.collocation:
+        if self.train.collocation_series is not None and not self.train.collocation:
             raise ValueError(f"--collocation-series {self.train.collocation_series} needs "
                              "collocation (on by default for the aerofoil's network on "
                              "periodic orbits; --collocation elsewhere)")

@@ -45,7 +45,8 @@ from ..models.corrections import (MLPCorrection, PolynomialParamCorrection,
                                   RestFreeCorrection, Scaling, feature_scaling)
 from ..models.ude import UDE
 from .amplitude_start import start_amplitude
-from .collocation import collocation_loss, collocation_unknowns, shooting_unknowns
+from .collocation import (collocation_loss, collocation_unknowns, plan_legs,
+                          shooting_unknowns)
 from .branch import amplitude_stages
 from .identify import TrainingData, residual_forces
 from .losses import (constrained_periodic_loss, equation_loss, orbit_unknowns, periodic_loss,
@@ -269,17 +270,25 @@ def _train(model: UDE, data: TrainingData, keys: list, cfg: TrainConfig, trainin
                 lr=cfg.learning_rate, failed=failed, progress=progress,
                 stage=f"periodic, {int(active.sum())} smallest orbits")
         if cfg.collocation:
-            # the long first training on the collocated orbits; shooting finishes it with
-            # the periodic stage's own steps, from the orbits collocation found
-            cparams = {"corr": params["corr"],
-                       **collocation_unknowns(data, model.mech.autonomous, lead,
-                                              cfg.collocation_series)}
-            cparams, loss, failed = descend(
-                collocation_loss, cparams, (static, mech, data, cfg, reg), lanes=lanes,
-                adam_steps=adam_steps, lbfgs_steps=lbfgs_steps, lr=cfg.learning_rate,
-                failed=failed, progress=progress, stage="collocation")
+            # the long first training on the collocated orbits, leg by leg of its plan (the
+            # period and parameter offsets carried from leg to leg); shooting finishes it
+            # with the periodic stage's own steps, from the orbits collocation found
+            offsets = {}
+            for series, leg_adam, leg_lbfgs in plan_legs(cfg.collocation_series, adam_steps,
+                                                         lbfgs_steps):
+                leg_cfg = dataclasses.replace(cfg, collocation_series=series)
+                cparams = {"corr": params["corr"],
+                           **collocation_unknowns(data, model.mech.autonomous, lead, series),
+                           **offsets}
+                cparams, loss, failed = descend(
+                    collocation_loss, cparams, (static, mech, data, leg_cfg, reg),
+                    lanes=lanes, adam_steps=leg_adam, lbfgs_steps=leg_lbfgs,
+                    lr=cfg.learning_rate, failed=failed, progress=progress,
+                    stage=f"collocation, {series} series")
+                params = {"corr": cparams["corr"]}
+                offsets = {k: v for k, v in cparams.items() if k in ("dT", "dP")}
             params = {"corr": cparams["corr"],
-                      **_shooting_start(cparams, static, mech, data, cfg, lanes)}
+                      **_shooting_start(cparams, static, mech, data, leg_cfg, lanes)}
             adam_steps, lbfgs_steps = cfg.adam_steps, cfg.lbfgs_steps
         params, loss, failed = descend(
             periodic_loss, params, (static, mech, data, cfg, reg), lanes=lanes,
