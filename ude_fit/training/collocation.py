@@ -43,7 +43,7 @@ import numpy as np
 from ..models.amplitude import resolve
 from ..models.flow import ordered_product, rk4_propagator
 from ..models.ude import UDE
-from .fourier import FINE, Basis, harmonics_of
+from .fourier import Basis, harmonics_of
 from .identify import TrainingData
 from .losses import OrbitTerms, objective_of, orbit_offsets
 from .options import TrainConfig
@@ -139,7 +139,8 @@ class Leg(NamedTuple):
 # --collocation-series: how the first training's steps go, leg by leg
 PLANS = {"free": (Leg("free", 1.0, True),),
          "solved": (Leg("solved", 1.0, True),),
-         "free-then-solved": (Leg("free", FREE_LEAD, False), Leg("solved", 1.0 - FREE_LEAD, True))}
+         "free-then-solved": (Leg("free", FREE_LEAD, False),
+                              Leg("solved", 1.0 - FREE_LEAD, True))}
 
 
 def plan_legs(plan: str, adam_steps: int, lbfgs_steps: int) -> list[tuple[str, int, int]]:
@@ -196,9 +197,8 @@ def monodromy(J, T):
 
 def collocation_terms(model, params, data: TrainingData, cfg: TrainConfig) -> OrbitTerms:
     """Every orbit of ``data`` as its series (the one ``cfg.collocation_series`` ends with):
-    its misfit to
-    the measured samples, its defect as the model's orbit (in the closure's place), and its
-    stability from the variational equation along it."""
+    its misfit to the measured samples, its defect as the model's orbit (in the closure's
+    place), and its stability from the variational equation along it."""
     mech = model.mech
     basis = Basis.of(data.ys.shape[1])
     orbits = Orbits.of(params, data, mech.autonomous)
