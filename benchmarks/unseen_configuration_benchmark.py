@@ -18,7 +18,10 @@ mass and nonlinearity (each has one subcritical Hopf point and one fold), not fr
 fit's results; ``--physics`` runs any other.
 
     python3 benchmarks/unseen_configuration_benchmark.py [--configs stiff,narrow,wide,soft]
-        [--physics NAME=VALUE ...] [--sigma S] [--seeds 0] [--starts N]
+        [--physics NAME=VALUE ...] [--sigma S] [--seeds 0] [--starts N] [-- fit options]
+
+Options after ``--`` go to every fit unchanged (e.g. ``-- --collocation-series free`` to
+set a plan beside the default's); the JSON records them.
 """
 
 from __future__ import annotations
@@ -70,18 +73,19 @@ def _figures(model: dict, truth: dict) -> dict:
     return out
 
 
-def run_one(physics: tuple, sigma: float, seed: int, starts: int | None, work: str) -> dict:
+def run_one(physics: tuple, sigma: float, seed: int, starts: int | None, work: str,
+            extra: tuple = ()) -> dict:
     folder = os.path.join(work, "points")
     truth = write_lee_campaign(folder, physics, sigma=sigma, seed=seed)
     out = os.path.join(work, "fit")
     cmd = [sys.executable, "-m", "ude_fit.cli", "fit", folder, "--system", "flutter",
            *(() if starts is None else ("--starts", str(starts))), "--seed", str(seed),
            "--reference-hopf", f"{truth['hopf']:.6f}",
-           "--reference-fold", f"{truth['fold']:.6f}", "--out", out, "--quiet"]
+           "--reference-fold", f"{truth['fold']:.6f}", *extra, "--out", out, "--quiet"]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     seconds = time.perf_counter() - t0
-    result = {"physics": list(physics), "sigma": sigma, "seed": seed,
+    result = {"physics": list(physics), "sigma": sigma, "seed": seed, "options": list(extra),
               "truth": {"hopf": truth["hopf"], "fold": truth["fold"]},
               "seconds": round(seconds, 1), "exit": proc.returncode}
     if proc.returncode != 0:
@@ -119,7 +123,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
     ap.add_argument("--starts", type=int, default=None,
                     help="the fit's starts (default: the fit's own default)")
-    args = ap.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    extra = tuple(argv[argv.index("--") + 1:]) if "--" in argv else ()
+    args = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
     configs = {}
     for name in filter(None, args.configs.split(",")):
         if name not in CONFIGURATIONS:
@@ -134,7 +140,7 @@ def main(argv=None) -> int:
                 sigma = (args.sigma if args.sigma is not None
                          else CONFIGURATION_SIGMA.get(name, DEFAULT_SIGMA))
                 runs.append({"config": name, **run_one(physics, sigma, seed,
-                                                       args.starts, work)})
+                                                       args.starts, work, extra)})
             print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
     print(json.dumps({"benchmark": "unseen_configuration", "runs": runs}, indent=1))
     return 0
