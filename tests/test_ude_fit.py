@@ -2,7 +2,7 @@
 judged by the rig's own truth (Hopf, fold, orbits); model files, the diagram command, errors.
 
 One 2-start fit serves the module (run in-process, so compiled functions are shared; two
-starts, not the default five, for CI's time: each starts from the mechanistic model).
+starts, not the default 16, for CI's time: each starts from the mechanistic model).
 """
 
 from __future__ import annotations

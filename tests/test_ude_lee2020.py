@@ -1,6 +1,6 @@
 """The real wind-tunnel measurements (lee2020/model2: 11 CBC points, 4 stable, 7 unstable):
 mechanistic and UDE models fitted with the default command, as a user would run it on them
-(`ude-fit fit model2 --system flutter`; one start instead of five, for CI's time).
+(`ude-fit fit model2 --system flutter`; one start instead of 16, for CI's time).
 
 The default aerofoil network is rest-free (its Hopf point is the mechanistic model's and the
 explicit linear terms', not the network's extrapolation to rest), starts from the mechanistic

@@ -79,8 +79,7 @@ class OrbitResiduals(eqx.Module):
     def normal_equations(self, C, weight):
         """The Gauss-Newton matrix and gradient of misfit + weight * defect at the series
         ``C`` (2k+1, states), over its coefficients flattened coefficient-major: the
-        residuals' Jacobian A as A^T A and A^T r; and the sum itself, from the same
-        evaluation of the field."""
+        residuals' Jacobian A as A^T A and A^T r."""
         K, S = C.shape
         J, f = self.field(C)                    # (m, S, S), (m, S)
         omega = 2.0 * jnp.pi / self.T
@@ -97,42 +96,29 @@ class OrbitResiduals(eqx.Module):
                  + jnp.transpose(field_gram, (2, 0, 3, 1)))
         H_fit = jnp.einsum("kl,tu->ktlu", self.basis.samples.T @ self.basis.samples,
                            jnp.diag(self.fit_scale ** 2))
-        misfit, defect = self.misfit(C), self.defect(C, f)
-        r_def = defect * self.defect_scale
-        g = (self.basis.samples.T @ (misfit * self.fit_scale)
+        r_def = self.defect(C, f) * self.defect_scale
+        g = (self.basis.samples.T @ (self.misfit(C) * self.fit_scale)
              + weight * (omega * self.basis.fine_slope.T @ r_def
                          - self.basis.fine.T @ jnp.einsum("ist,is->it", J, r_def)))
-        value = jnp.sum(misfit ** 2) + weight * jnp.sum(defect ** 2)
-        return (H_fit + weight * H_def).reshape(K * S, K * S), g.reshape(-1), value
+        return (H_fit + weight * H_def).reshape(K * S, K * S), g.reshape(-1)
 
     def gauss_newton_step(self, C, weight):
         """One Gauss-Newton step on misfit + weight * defect over the series ``C``, cut back
         (:data:`BACKTRACK`) until it lowers the sum, or none: far from the model's orbit
         the vector field's curvature can make the full step overshoot."""
-        H, g, now = self.normal_equations(C, weight)
+        H, g = self.normal_equations(C, weight)
         step = jnp.linalg.solve(H, g).reshape(C.shape)
-
-        # the fractions longest first, each tried only where the longer ones did not lower
-        # the sum (the first try mostly does): the longest step that lowers it, NaN lowering
-        # nothing, else none
-        def untried(state):
-            tried, lowered = state
-            return (tried < BACKTRACK.shape[0]) & ~lowered
-
-        def try_next(state):
-            tried, _ = state
-            return tried + 1, self.objective(C - BACKTRACK[tried] * step, weight) < now
-        tried, lowered = jax.lax.while_loop(untried, try_next, (0, False))
-        return jnp.where(lowered, C - BACKTRACK[tried - 1] * step, C)
+        now = self.objective(C, weight)
+        tries = C - BACKTRACK[:, None, None] * step
+        lower = jax.vmap(lambda c: self.objective(c, weight))(tries) < now
+        # the longest step that lowers the sum (NaN lowers nothing), else none
+        return jnp.where(lower.any(), tries[jnp.argmax(lower)], C)
 
 
 def solve(res: OrbitResiduals, C, weight):
     """The series that minimises the orbit's misfit plus ``weight`` times its defect for
     this model: :data:`SERIES_STEPS` Gauss-Newton steps from ``C``, outside the gradient
     (at the minimum the series' own change moves the objective by nothing to first order,
-    so the model's gradient is the objective's at fixed series). No tangent enters the
-    steps: the gradient would not pass them, and building it costs as much as the steps."""
-    res, C = jax.tree_util.tree_map(
-        lambda x: jax.lax.stop_gradient(x) if eqx.is_inexact_array(x) else x, (res, C))
+    so the model's gradient is the objective's at fixed series)."""
     C = jax.lax.fori_loop(0, SERIES_STEPS, lambda _, c: res.gauss_newton_step(c, weight), C)
     return jax.lax.stop_gradient(C)
