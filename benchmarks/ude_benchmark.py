@@ -232,7 +232,7 @@ def _periodic_step(path: str, repeats: int = 20) -> dict:
     from ude_fit.training.losses import periodic_loss
     from ude_fit.training.options import TrainConfig
     from ude_fit.training.train import _trainable_spec, new_correction
-    data, *_ = prepare(load([path], "flutter"), "flutter", None, 32)
+    _, data, *_ = prepare(load([path], "flutter"), "flutter", None, 32)
     mech, _ = identify_mechanistic(data, "flutter")
     out = {"orbits": int(data.n_orbits), "repeats": repeats}
     for name, rest_free in (("plain", False), ("rest_free", True)):

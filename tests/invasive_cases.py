@@ -81,7 +81,7 @@ def mechanistic_cases(folder: Path, loose: float, effects: tuple = (), *,
     for name, path, control in FITS:
         ds = load([Path(folder) / path], "flutter")
         opts = FitOptions("flutter", control_input=control, mechanistic_effects=effects)
-        data, ranges, _, _ = prepare(ds, "flutter", TRUTH_REFERENCE, opts.samples)
+        _, data, ranges, _, _ = prepare(ds, "flutter", TRUTH_REFERENCE, opts.samples)
         data, mech, ident = mechanistic_stage(ds, data, opts)
         data = augment(data, mech)
         out[name] = (against_truth(UDE(mech), truth_ds, ranges, np.asarray(data.y_scale)),

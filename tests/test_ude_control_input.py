@@ -68,7 +68,7 @@ def test_gain_is_identified_from_the_orbits(invasive):
     unchanged."""
     ds = load([invasive[0]], "flutter")
     assert all(o.holding.control_unit == "N" and o.holding.invasive for o in ds)
-    data = prepare(ds, "flutter", None, 32)[0]
+    data = prepare(ds, "flutter", None, 32)[1]
     _, one = identify_mechanistic(with_control(data, ds, 1.0), "flutter", free_input=True)
     _, fifth = identify_mechanistic(with_control(data, ds, 0.2), "flutter", free_input=True)
     g = one["parameters"][INPUT_GAIN]

@@ -10,11 +10,16 @@ fit on such files, against the rig's Hopf and fold, is a benchmark
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
-from tests.lee_format import point_airspeeds, truth_of, write_lee_campaign
+from tests.lee_format import (HEAVE_M_PER_V, HEAVE_OFFSET_V, PITCH_OFFSET_RAD,
+                               point_airspeeds, truth_of, write_lee_campaign)
 from ude_fit.data import load
+from ude_fit.fitting import identify_mechanistic, prepare
+from ude_fit.training.sensor_zero import with_sensor_zero
 
 PHYSICS = ("k_alpha=70", "k_h=3600", "c_h=10")      # the benchmark's "stiff" configuration
 
@@ -49,7 +54,37 @@ def test_every_point_loads_with_its_stability_and_its_true_amplitude(written):
         # the offsets, the volts and the failed pitch reads are the layout's: the heave's
         # first harmonic is the true orbit's, to the noise's few per cent
         assert o.amplitude == pytest.approx(p["amplitude"], rel=0.05), p
-        assert np.all(np.isfinite(o.coeffs)) and abs(o.coeffs[1, 0]) < 0.01
+        assert np.all(np.isfinite(o.coeffs)) and not o.zero_known
+
+
+def test_the_sensors_zero_is_identified_and_the_stiffness_with_it(written):
+    """The files do not record the heave sensor's DC level nor the encoder's zero. Taken
+    about the rig's rest position identified from the points, the orbits give the configured
+    rig's pitch stiffness (70, 774.7, 3490.7; the quasi-steady model's error is the wake's
+    lag); taken each about its own mean, the quadratic stiffness's pull on a large orbit's
+    mean is lost and the identification mistakes it."""
+    folder, _ = written
+    ds = load(folder, "flutter")
+    zeroed = with_sensor_zero(ds)
+    z = zeroed.sensor_zero
+    assert z.identified and z.points == len(ds) and not zeroed.zero_unknown().any()
+    assert z.offsets[0] == pytest.approx(HEAVE_OFFSET_V * HEAVE_M_PER_V, abs=5e-4)
+    assert z.offsets[1] == pytest.approx(PITCH_OFFSET_RAD, abs=1e-3)
+    assert z.error < 0.2 * z.error_own_means
+
+    def pitch_stiffness(dataset):
+        _, data, *_ = prepare(dataset, "flutter", None, 32)
+        p = identify_mechanistic(data, "flutter")[1]["parameters"]
+        return np.array([p["k_alpha"], p["k_alpha2"], p["k_alpha3"]])
+
+    truth = np.array([70.0, 774.7, 3490.7])
+    np.testing.assert_allclose(pitch_stiffness(zeroed), truth, rtol=0.03)
+    means = np.array([o.coeffs[:, 0] for o in ds])
+    each_own = dataclasses.replace(ds, orbits=tuple(
+        dataclasses.replace(o, coeffs=np.column_stack([o.coeffs[:, :1] - m[:, None],
+                                                       o.coeffs[:, 1:]]), zero_known=True)
+        for o, m in zip(ds, means)))
+    assert abs(pitch_stiffness(each_own)[0] / truth[0] - 1) > 0.2
 
 
 def test_a_configuration_without_a_campaigns_two_orbits_is_refused(tmp_path):
@@ -69,3 +104,40 @@ def test_a_point_the_board_did_not_hold_is_refused(tmp_path):
     with pytest.raises(ValueError, match="was not held"):
         write_lee_campaign(tmp_path, soft, sigma=0.04, seed=0, n_speeds=3, n_stable=3,
                            record_s=8.0)
+
+
+def test_a_rest_position_moved_by_a_lift_at_rest_is_found_at_every_airspeed(written, tmp_path):
+    """A planted effect: an aerofoil whose load-free incidence is not its rest angle carries
+    a static lift growing as V^2, which moves its heave's rest position with the airspeed
+    (the heave enters the rig's equations only through its spring and rates, so the orbits
+    are the configured rig's, shifted). Planted here as 4 mm per (20 m/s)^2 on each file's
+    heave: every orbit comes out about its own airspeed's rest position, and the stiffness
+    as without it."""
+    import scipy.io
+
+    folder, _ = written
+    per_v2 = 0.004 / 20.0 ** 2
+    for src in sorted(folder.glob("*.mat")):
+        m = scipy.io.loadmat(str(src))
+        data = m["data"].copy()
+        V = float(np.ravel(m["Wind_sped"])[0])
+        data[0] += per_v2 * V ** 2 / HEAVE_M_PER_V
+        scipy.io.savemat(str(tmp_path / src.name),
+                         {**{k: v for k, v in m.items() if not k.startswith("__")},
+                          "data": data})
+    plain = with_sensor_zero(load(folder, "flutter"))
+    lifted = with_sensor_zero(load(tmp_path, "flutter"))
+    assert lifted.sensor_zero.identified and plain.sensor_zero.identified
+    # the rest position at each airspeed: the same orbits about it, to a tenth of a mm
+    for a, b in zip(plain, lifted):
+        assert a.parameter == b.parameter
+        assert b.coeffs[0, 0] == pytest.approx(a.coeffs[0, 0], abs=1e-4)
+        assert b.coeffs[1, 0] == pytest.approx(a.coeffs[1, 0], abs=1e-4)
+    V = lifted.parameters()
+    assert lifted.sensor_zero.deflection_span[0] == pytest.approx(
+        per_v2 * np.ptp(V ** 2), rel=0.1)
+    assert abs(plain.sensor_zero.deflection_span[0]) < 0.1 * per_v2 * np.ptp(V ** 2)
+    _, data, *_ = prepare(lifted, "flutter", None, 32)
+    p = identify_mechanistic(data, "flutter")[1]["parameters"]
+    np.testing.assert_allclose([p["k_alpha"], p["k_alpha2"], p["k_alpha3"]],
+                               [70.0, 774.7, 3490.7], rtol=0.03)

@@ -48,7 +48,7 @@ def test_the_parameterisation_starts_at_the_estimate_and_never_crosses_zero():
 def test_the_refinement_keeps_the_heave_damping_positive_on_lee2020(lee2020_dir):
     ds = load(sorted(glob.glob(str(lee2020_dir / "model2" / "*.mat"))), "flutter")
     opts = FitOptions(system="flutter", starts=1)
-    data, *_ = prepare(ds, "flutter", None, opts.samples)
+    _, data, *_ = prepare(ds, "flutter", None, opts.samples)
     data, mech, ident = mechanistic_stage(ds, data, opts)
     assert "c_h" in ident["at_bound"]           # the equation error wants it below zero
     cfg = TrainConfig(adam_steps=150, lbfgs_steps=60)

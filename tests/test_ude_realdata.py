@@ -210,7 +210,7 @@ def test_negative_least_squares_damping_is_bounded_not_replaced(negative_damping
     from ude_fit.fitting import identify_mechanistic, prepare
     from ude_fit.models.ude import UDE
 
-    data, ranges, ref, src = prepare(negative_damping, "flutter", None, 32)
+    _, data, ranges, ref, src = prepare(negative_damping, "flutter", None, 32)
     mech, ident = identify_mechanistic(data, "flutter")
     assert ident["at_bound"] == ["c_h"] and ident["unconstrained"]["c_h"] < -1.0
     assert all(v >= 0 for k, v in ident["parameters"].items()
@@ -238,7 +238,7 @@ def test_parameter_file_values_are_used_and_said_so(negative_damping, tmp_path):
     p = tmp_path / "rig.toml"
     p.write_text("c_h = 2.5\nm_T = 17.0\n")
     given = MechanisticParameters.read(p, "flutter")
-    data, *_ = prepare(negative_damping, "flutter", None, 32)
+    _, data, *_ = prepare(negative_damping, "flutter", None, 32)
     mech, ident = identify_mechanistic(data, "flutter", given=given)
     assert float(mech.c_h) == 2.5 and float(mech.m_T) == 17.0
     assert ident["sources"]["c_h"] == ident["sources"]["m_T"] == f"user file {p}"
@@ -251,13 +251,16 @@ def test_report_lists_unknown_points_holding_and_parameter_sources(named):
     table with every point's figures, and where each mechanistic parameter came from."""
     from ude_fit.report.markdown import render
 
-    ds = load(named, "flutter")
+    from ude_fit.training.sensor_zero import with_sensor_zero
+
+    ds = with_sensor_zero(load(named, "flutter"))
+    zero = ds.sensor_zero.to_json()
     metrics = {
         "system": "flutter", "version": "test", "written": "now", "command": "ude-fit fit",
         "approximator": "nn", "training": "periodic", "ude": None,
         "data": {"points": len(ds), "stable": 1, "unstable": 2, "sources": list(ds.sources),
                  "max_amplitude": float(ds.amplitudes().max()),
-                 "unknown_stability": ds.unknown_stability(),
+                 "unknown_stability": ds.unknown_stability(), "sensor_zero": zero,
                  "point_records": ds.point_records()},
         "mechanistic": {"branch_rms": None, "branch_max": None, "missed": 4,
                         "trajectory_rms": None, "hopf": None, "fold": None, "points": [],
@@ -278,6 +281,9 @@ def test_report_lists_unknown_points_holding_and_parameter_sources(named):
     assert all(f"`{o.source}`" in table for o in ds)
     assert "| c_h | 0 | 0.1 | identified from the orbits, at its physical bound 0 |" in text
     assert "| m_T | 16.9 | — | user file rig.toml |" in text
+    assert zero["identified"] and zero["points"] == len(ds)
+    assert (f"The files of {len(ds)} point(s) do not record the sensors' zero" in text
+            and f"alpha {zero['offsets'][1]:.5g} ±" in text and "zero-lift incidence" in text)
 
 
 def _lee_with_pitch(path, failed_of_phase, pitch_offset=0.35):
@@ -294,22 +300,22 @@ def _lee_with_pitch(path, failed_of_phase, pitch_offset=0.35):
     return load([path], "flutter")[0]
 
 
-def _assert_the_written_swing(o):
-    """The pitch as write_lee writes it: mean 0, 0.05 rad, 1 rad behind the heave, nothing
-    else."""
+def _assert_the_written_swing(o, offset=0.35):
+    """The pitch as write_lee writes it: 0.05 rad about the encoder's ``offset`` (its zero,
+    which the file does not record), 1 rad behind the heave, nothing else."""
     pitch = o.coeffs[1]
     K = (pitch.size - 1) // 2
-    assert abs(pitch[0]) < 1e-6                       # the signal's mean is its offset
+    assert not o.zero_known and pitch[0] == pytest.approx(offset, abs=1e-6)
     assert math.hypot(pitch[1], pitch[1 + K]) == pytest.approx(0.05, rel=1e-6)
     assert math.atan2(-pitch[1 + K], pitch[1]) == pytest.approx(1.0, abs=1e-6)
     assert np.all(np.abs(pitch[2:1 + K]) < 1e-6) and np.all(np.abs(pitch[2 + K:]) < 1e-6)
 
 
-def test_pitch_offset_is_the_fitted_mean_where_failed_reads_cluster(tmp_path):
+def test_pitch_mean_is_the_fitted_mean_where_failed_reads_cluster(tmp_path):
     """The encoder's failed reads (the all-ones code) come in bursts at a few angles of the
     cycle. Left out, they leave the valid samples' plain mean off the signal's own mean, by
-    where they fall; the pitch's offset is the fitted mean, so the loaded orbit is the
-    signal with its mean removed and its harmonics as they were."""
+    where they fall; the pitch's mean is the fitted one, so the loaded orbit is the signal
+    about the encoder's zero with its harmonics as they were."""
     # 20 % of the reads fail, all near the top of the pitch's swing
     o = _lee_with_pitch(tmp_path / "CBC_v21_0.mat",
                         lambda ph: np.cos(ph + 1.0) > np.quantile(np.cos(ph + 1.0), 0.8))
@@ -332,5 +338,5 @@ def test_a_pitch_wrapped_at_2pi_is_unwrapped(tmp_path, offset):
     o = _lee_with_pitch(path, bursts, pitch_offset=offset)
     row = scipy.io.loadmat(str(path))["data"][3]
     assert np.ptp(row[row < 2 * np.pi - 1e-3]) > 6.0    # the valid readings do wrap
-    _assert_the_written_swing(o)
+    _assert_the_written_swing(o, offset)
     assert o.noise[1] < 1e-6 * 0.05

@@ -29,6 +29,8 @@ class SystemKind:
     # the diagram is traced up to this many times the largest measured amplitude (of each
     # forcing frequency's, for a forced system)
     amplitude_window: float
+    # the coordinates that are angles (a sensor reads them modulo 2 pi)
+    angles: tuple[str, ...] = ()
 
     @property
     def forced(self) -> bool:
@@ -36,7 +38,8 @@ class SystemKind:
 
 
 AEROFOIL = SystemKind("flutter", "aerofoil (flutter)", ("h", "alpha"), "airspeed", "airspeed",
-                      "m/s", "airspeed (m/s)", autonomous=True, amplitude_window=1.4)
+                      "m/s", "airspeed (m/s)", autonomous=True, amplitude_window=1.4,
+                      angles=("alpha",))
 OSCILLATOR = SystemKind("oscillator", "forced oscillator", ("x",), "forcing_amplitude",
                         "forcing amplitude", "m/s²", "forcing frequency (Hz)", autonomous=False,
                         amplitude_window=1.5)

@@ -53,6 +53,7 @@ from .training.identify import (INPUT_GAIN, TrainingData, augment, identify, res
                                 training_data)
 from .training.optimise import Diverged
 from .training.parameter_errors import parameter_errors
+from .training.sensor_zero import with_sensor_zero
 from .training.options import FitOptions
 from .training.train import refine_mechanistic, train_ensemble, train_ude
 
@@ -306,18 +307,30 @@ def _train_starts(mech_model, data: TrainingData, opts: FitOptions, keys, say,
     return trained, seconds
 
 
-def prepare(ds: OrbitDataset, system: str, reference: dict | None, samples: int):
-    """Checks and the arrays every pipeline starts from: (training data, diagram ranges,
-    Hopf/fold reference, where the reference came from)."""
+def prepare(ds: OrbitDataset, system: str, reference: dict | None, samples: int,
+            geometry: dict | None = None):
+    """Checks and the arrays every pipeline starts from: (the dataset about the rig's rest
+    position, training data, diagram ranges, Hopf/fold reference, where the reference came
+    from). ``geometry``: the mechanistic model's known geometry, for a zero no file
+    recorded (:func:`~.training.sensor_zero.with_sensor_zero`)."""
     if len(ds) == 0:
         raise DataError("the dataset is empty")
     if ds.system != system:
         raise DataError(f"the data is {ds.system} data, not {system}")
+    ds = with_sensor_zero(ds, geometry)
     data = training_data(ds, n=samples)
     if reference:
-        return data, diagram_ranges(ds), dict(reference), "given"
-    return (data, diagram_ranges(ds), estimate_from_data(ds),
+        return ds, data, diagram_ranges(ds), dict(reference), "given"
+    return (ds, data, diagram_ranges(ds), estimate_from_data(ds),
             "estimated from the measured points")
+
+
+def known_geometry(given: MechanisticParameters | None) -> dict | None:
+    """The mechanistic model's known geometry with the user's ``given`` values in it; None
+    (the design's) where the user gave none."""
+    if given is None or not given.known:           # only the aerofoil has known geometry
+        return None
+    return {**FLUTTER_NOMINAL, **given.known}
 
 
 def identify_mechanistic(data: TrainingData, system: str, *, bootstrap: int = 0,
@@ -328,9 +341,7 @@ def identify_mechanistic(data: TrainingData, system: str, *, bootstrap: int = 0,
     in their place and the library ``effects`` ((key, shape) pairs, the shape None for an
     effect without one) added as terms of their own. The info's ``sources`` says where
     every parameter came from."""
-    base = None
-    if given is not None and given.known:          # only the aerofoil has known geometry
-        base = {**FLUTTER_NOMINAL, **given.known}
+    base = known_geometry(given)
     chosen = tuple(effects)
     mech, ident = identify(data, system, base, chosen,
                            fixed=None if given is None else given.fitted,
@@ -424,7 +435,8 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
     t_start = time.perf_counter()
     if reference is None:
         reference = opts.reference() or None
-    data, ranges, ref, ref_source = prepare(ds, opts.system, reference, opts.samples)
+    ds, data, ranges, ref, ref_source = prepare(
+        ds, opts.system, reference, opts.samples, known_geometry(opts.mechanistic_parameters))
     if mechanistic is not None:
         ident = None
         choice = opts.control()
@@ -531,6 +543,8 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                    "parameter_scatter": (parameter_scatter(ds) if ds.kind.autonomous
                                          else None),
                    "unknown_stability": ds.unknown_stability(),
+                   "sensor_zero": (None if ds.sensor_zero is None
+                                   else ds.sensor_zero.to_json()),
                    "point_records": ds.point_records()}
     return FitResult(options=opts, mechanistic=mech_model,
                      ude=None if best is None else best.model, identification=ident,

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 from ._precision import require_float64
 from .data.orbit import OrbitDataset
 from .discovery.loop import LoopResult, close_loop
-from .fitting import FitResult, fit
+from .fitting import FitResult, fit, known_geometry
+from .training.sensor_zero import with_sensor_zero
 from .training.options import FitOptions
 
 
@@ -48,6 +49,11 @@ class PipelineOptions:
             raise ValueError(f"--min-gain must be at least 0 and below 1, not "
                              f"{self.min_gain!r}")
 
+    @property
+    def mechanistic_parameters(self):
+        """The user's parameter file (the fit's), which the loop's models share."""
+        return self.fit.mechanistic_parameters
+
     def loop_json(self) -> dict:
         """The loop's options as its metrics.json records them."""
         return {"system": self.fit.system, "seed": self.fit.seed, "bootstrap": self.bootstrap,
@@ -76,6 +82,9 @@ def run_pipeline(ds: OrbitDataset, options: PipelineOptions, *,
     require_float64("run_pipeline")
     say = progress or (lambda **kw: None)
     opts = options.fit
+    # the fit and the loop on one dataset about the rig's rest position (its zero, where no
+    # file recorded it, identified once with the user's geometry)
+    ds = with_sensor_zero(ds, known_geometry(options.mechanistic_parameters))
     say(event="stage", stage=f"pipeline 1/2: fit (mechanistic model and UDE, {opts.starts} "
         "starts)")
     fitted = fit(ds, opts, progress=progress)

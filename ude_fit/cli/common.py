@@ -47,18 +47,22 @@ def start(args, build_options):
         opts = build_options(args)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    ds = load_data(args)
+    from ..fitting import known_geometry
+    ds = load_data(args, known_geometry(opts.mechanistic_parameters))
     return opts, ds, out_dir(args.out), Progress(args.quiet)
 
 
-def load_data(args):
-    """The dataset DATA... and --system (and --stability) ask for."""
+def load_data(args, geometry: dict | None = None):
+    """The dataset DATA... and --system (and --stability) ask for, about the rig's rest
+    position (where a file does not record it, identified with the mechanistic model of
+    the known ``geometry``, the design's where None: training.sensor_zero)."""
     from ..data import StabilityLabels
+    from ..training.sensor_zero import with_sensor_zero
     try:
         labels = StabilityLabels.parse(args.stability)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    return load(args.data, args.system, labels)
+    return with_sensor_zero(load(args.data, args.system, labels), geometry)
 
 
 class Progress:

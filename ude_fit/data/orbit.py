@@ -94,6 +94,10 @@ class Orbit:
       volts in the lee2020 files); None where the file does not record it. A fit may take
       it as a known input (``--control-input``); the oscillator's ``forcing`` already holds
       its control (the total excitation).
+    zero_known: whether ``coeffs``' means are about the rig's rest position (a campaign
+      file's coordinates) or about a sensor zero the file does not record (False: the
+      lee2020 heave sensor's DC level and the pitch encoder's absolute angle are in them;
+      :func:`~ude_fit.training.sensor_zero.with_sensor_zero` identifies that zero).
     """
 
     parameter: float
@@ -107,6 +111,7 @@ class Orbit:
     stability_from: str = ""
     holding: Holding | None = None
     control: np.ndarray | None = None
+    zero_known: bool = True
 
     def __post_init__(self):
         c = _frozen(self.coeffs)
@@ -143,11 +148,14 @@ class Orbit:
 
 @dataclass(frozen=True, eq=False)
 class OrbitDataset:
-    """Periodic orbits of one system ("flutter" or "oscillator"), in load order."""
+    """Periodic orbits of one system ("flutter" or "oscillator"), in load order.
+    ``sensor_zero``: where the orbits' rest position came from when some file did not
+    record it (:class:`~ude_fit.training.sensor_zero.SensorZero`), None otherwise."""
 
     system: str
     orbits: tuple[Orbit, ...]
     sources: tuple[str, ...]
+    sensor_zero: object | None = None
 
     def __post_init__(self):
         system_kind(self.system)                      # a ValueError naming the known ones
@@ -246,7 +254,12 @@ class OrbitDataset:
             idx = np.flatnonzero(m)
         else:
             idx = m.astype(int).ravel()
-        return OrbitDataset(self.system, tuple(self.orbits[i] for i in idx), self.sources)
+        return OrbitDataset(self.system, tuple(self.orbits[i] for i in idx), self.sources,
+                            self.sensor_zero)
+
+    def zero_unknown(self) -> np.ndarray:
+        """Mask of the orbits whose means are about a sensor zero no file recorded."""
+        return np.array([not o.zero_known for o in self.orbits], dtype=bool)
 
     def frequencies_group(self) -> np.ndarray:
         """The distinct forcing frequencies (Hz, rounded to 1e-6 Hz), ascending (oscillator).

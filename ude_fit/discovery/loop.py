@@ -190,7 +190,7 @@ def refine(ds: OrbitDataset, system: str, add: list, *, reference=None, seed: in
     ``control``, the recorded control as a known input: see the module's docstring)."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
-    data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
+    ds, data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
     say(event="stage", stage="mechanistic model")
     before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap, control)
     added = []
@@ -226,7 +226,7 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     ``control`` the recorded control is a known input (the module's docstring)."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
-    data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
+    ds, data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
     say(event="stage", stage="mechanistic model")
     before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap, control)
     current, added, steps, explanations, locations = before, [], [], [], []

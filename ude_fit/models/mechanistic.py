@@ -112,6 +112,13 @@ class MechanisticModel(eqx.Module):
         accelerations are qdd and its own force is F: what a correction must supply."""
         raise NotImplementedError
 
+    @classmethod
+    def incidence_load(cls, param, geometry: dict | None = None):
+        """(n_samples, n_dof) the generalised force, at the parameters ``param``, of a unit
+        offset between the rig's rest position and its load-free one (an aerofoil's
+        zero-lift incidence); None where the model has no such load."""
+        return None
+
     def unphysical(self) -> str:
         """The fitted values no passive structure has, below zero ("name = value, ...";
         "" if none)."""
@@ -290,6 +297,14 @@ class FlutterQS(MechanisticModel):
         return jnp.array([[2 * pi * rho * b * V, 2 * pi * rho * b ** 2 * V * (1 - a)],
                           [-2 * pi * rho * b ** 2 * V * (a + 0.5),
                            -2 * a * rho * b ** 3 * V * pi * (0.5 - a)]])
+
+    @classmethod
+    def incidence_load(cls, param, geometry: dict | None = None):
+        """The lift and moment of a unit zero-lift incidence: the aerodynamic stiffness's
+        pitch column, as the aerodynamic terms act on alpha less that incidence."""
+        mech = cls.from_values({}, geometry)
+        return np.asarray(jax.vmap(lambda V: mech.aero_stiffness(V)[:, 1])(
+            jnp.asarray(param, float)))
 
     def aero_stiffness(self, V):
         pi, b, a, rho = jnp.pi, self.b, self.a, self.rho

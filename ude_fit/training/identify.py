@@ -171,23 +171,14 @@ def identify(data: TrainingData, system: str, base: dict | None = None,
     if unknown:
         raise ValueError(f"identify: no fitted parameter {', '.join(sorted(unknown))}")
     # each equation weighted by its own force scale (before the given terms move over)
-    w_eq = 1.0 / np.sqrt(np.mean(b ** 2, axis=0) + 1e-300)
+    w_eq = equation_weights(b)
     for k, v in fixed.items():
         b = b - A[:, :, names.index(k)] * v
     free = [j for j, n in enumerate(names) if n not in fixed]
     A, names = A[:, :, free], [names[j] for j in free]
-    Aw = (A * w_eq[None, :, None]).reshape(-1, A.shape[-1])
-    bw = (b * w_eq[None, :]).reshape(-1)
-    col = np.sqrt(np.mean(Aw ** 2, axis=0))
-    col = np.where(col > 0, col, 1.0)
-    positive = set(model_class(system).must_be_positive)
-    lower = np.array([0.0 if n in positive else -np.inf for n in names])
-
-    def solve(M, y):
-        if np.isfinite(lower).any():       # lower bounds unchanged by the column scaling
-            return lsq_linear(M, y, bounds=(lower, np.inf), method="bvls").x
-        return np.linalg.lstsq(M, y, rcond=None)[0]
-
+    Aw, bw, col = _weighted(A, b, w_eq)
+    lower = _lower_bounds(system, names)
+    solve = lambda M, y: _bounded_solve(M, y, lower)
     theta = solve(Aw / col, bw) / col
     plain = np.linalg.lstsq(Aw / col, bw, rcond=None)[0] / col
     boot = None
@@ -215,6 +206,40 @@ def identify(data: TrainingData, system: str, base: dict | None = None,
     if boot is not None:
         info["bootstrap_std"] = dict(zip(names, boot.tolist()))
     return mech, info
+
+
+def equation_weights(b: np.ndarray) -> np.ndarray:
+    """Each equation's weight in the regression: one over its known force's RMS."""
+    return 1.0 / np.sqrt(np.mean(b ** 2, axis=0) + 1e-300)
+
+
+def _weighted(A, b, w_eq):
+    """The regression's rows weighted (flattened) and its columns' RMS (1 where none)."""
+    Aw = (A * w_eq[None, :, None]).reshape(-1, A.shape[-1])
+    bw = (b * w_eq[None, :]).reshape(-1)
+    col = np.sqrt(np.mean(Aw ** 2, axis=0))
+    return Aw, bw, np.where(col > 0, col, 1.0)
+
+
+def _lower_bounds(system: str, names) -> np.ndarray:
+    positive = set(model_class(system).must_be_positive)
+    return np.array([0.0 if n in positive else -np.inf for n in names])
+
+
+def _bounded_solve(M, y, lower):
+    if np.isfinite(lower).any():           # lower bounds unchanged by the column scaling
+        return lsq_linear(M, y, bounds=(lower, np.inf), method="bvls").x
+    return np.linalg.lstsq(M, y, rcond=None)[0]
+
+
+def equation_residual(data: TrainingData, system: str, w_eq: np.ndarray,
+                      base: dict | None = None) -> np.ndarray:
+    """The weighted equation error left by :func:`identify`'s bounded solve on ``data``,
+    with the equations' weights ``w_eq`` given (held fixed where the data are varied)."""
+    A, b, names, _ = regression(data, system, base)
+    Aw, bw, col = _weighted(A, b, w_eq)
+    theta = _bounded_solve(Aw / col, bw, _lower_bounds(system, names)) / col
+    return bw - Aw @ theta
 
 
 def build(system: str, base: dict | None, values: dict, effects: tuple = ()):
