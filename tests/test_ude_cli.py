@@ -43,9 +43,9 @@ FORM_FLAGS = ["--correction-form", "amplitude", "--seed", "5", "--constraint-rou
               "--backbone-margins"]
 GP_FLAGS = ["--approximator", "gp", "--starts", "2", "--seed", "3", "--reference-hopf", "24.1"]
 # the guide orbits (periodic training of the network, without the rounds above), with
-# collocation's series solved for the model
+# collocation's series solved for the model and the sensors' zero identified
 GUIDE_FLAGS = ["--guide-orbits", "10", "--guide-weight", "0.5", "--seed", "4",
-               "--collocation-series", "solved"]
+               "--collocation-series", "solved", "--sensor-zero", "identified"]
 # the guide rounds (on by default; another count, and the first round's weight), and the
 # first training by shooting instead of collocation
 ROUND_FLAGS = ["--guide-rounds", "3", "--guide-weight", "0.2", "--seed", "6",

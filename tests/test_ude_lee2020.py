@@ -54,12 +54,11 @@ def test_both_models_fitted_to_the_11_points(lee_fit):
     assert "physical bound 0" in ident["sources"]["c_h"]
     assert set(ident["sources"]) >= {"b", "m_T", "c_h", "k_h", "k_alpha3"}
     assert (out / "ude.eqx").exists() and (out / "diagram.png").exists()
-    # the files record neither sensor's zero: the rest position was identified from the
-    # points, with the zero-lift incidence whose lift moves it with the airspeed
+    # the files record neither sensor's zero: by default each point's own mean, said so
     zero = m["data"]["sensor_zero"]
-    assert zero["identified"] and zero["points"] == 11
-    assert zero["coordinates"] == ["h", "alpha"] and zero["incidence"] is not None
-    assert zero["equation_error"] < zero["equation_error_own_means"]
+    assert not zero["identified"] and zero["points"] == 11
+    assert zero["method"] == "each point's own mean (the default)"
+    assert m["options"]["sensor_zero"] == "own-means"
 
 
 def test_ude_reproduces_every_point_with_its_stability(lee_fit):

@@ -253,7 +253,7 @@ def test_report_lists_unknown_points_holding_and_parameter_sources(named):
 
     from ude_fit.training.sensor_zero import with_sensor_zero
 
-    ds = with_sensor_zero(load(named, "flutter"))
+    ds = with_sensor_zero(load(named, "flutter"), zero="identified")
     zero = ds.sensor_zero.to_json()
     metrics = {
         "system": "flutter", "version": "test", "written": "now", "command": "ude-fit fit",
@@ -301,11 +301,12 @@ def _lee_with_pitch(path, failed_of_phase, pitch_offset=0.35):
 
 
 def _assert_the_written_swing(o, offset=0.35):
-    """The pitch as write_lee writes it: 0.05 rad about the encoder's ``offset`` (its zero,
-    which the file does not record), 1 rad behind the heave, nothing else."""
+    """The pitch as write_lee writes it: mean 0, 0.05 rad, 1 rad behind the heave, nothing
+    else; its mean in the encoder's frame the written ``offset``."""
     pitch = o.coeffs[1]
     K = (pitch.size - 1) // 2
-    assert not o.zero_known and pitch[0] == pytest.approx(offset, abs=1e-6)
+    assert abs(pitch[0]) < 1e-6                       # the signal's mean is its offset
+    assert not o.zero_known and o.sensor_means[1] == pytest.approx(offset, abs=1e-6)
     assert math.hypot(pitch[1], pitch[1 + K]) == pytest.approx(0.05, rel=1e-6)
     assert math.atan2(-pitch[1 + K], pitch[1]) == pytest.approx(1.0, abs=1e-6)
     assert np.all(np.abs(pitch[2:1 + K]) < 1e-6) and np.all(np.abs(pitch[2 + K:]) < 1e-6)
@@ -315,7 +316,7 @@ def test_pitch_mean_is_the_fitted_mean_where_failed_reads_cluster(tmp_path):
     """The encoder's failed reads (the all-ones code) come in bursts at a few angles of the
     cycle. Left out, they leave the valid samples' plain mean off the signal's own mean, by
     where they fall; the pitch's mean is the fitted one, so the loaded orbit is the signal
-    about the encoder's zero with its harmonics as they were."""
+    with its mean removed and its harmonics as they were."""
     # 20 % of the reads fail, all near the top of the pitch's swing
     o = _lee_with_pitch(tmp_path / "CBC_v21_0.mat",
                         lambda ph: np.cos(ph + 1.0) > np.quantile(np.cos(ph + 1.0), 0.8))
@@ -340,3 +341,19 @@ def test_a_pitch_wrapped_at_2pi_is_unwrapped(tmp_path, offset):
     assert np.ptp(row[row < 2 * np.pi - 1e-3]) > 6.0    # the valid readings do wrap
     _assert_the_written_swing(o, offset)
     assert o.noise[1] < 1e-6 * 0.05
+
+
+def test_the_default_keeps_each_points_own_mean_and_says_so(named):
+    """Without --sensor-zero identified the orbits stay about their own means, as loaded,
+    and the record (metrics.json, the report) says which zero was used."""
+    from ude_fit.report.markdown import _sensor_zero
+    from ude_fit.training.sensor_zero import with_sensor_zero
+
+    ds = load(named, "flutter")
+    kept = with_sensor_zero(ds)
+    assert all(np.array_equal(a.coeffs, b.coeffs) for a, b in zip(ds, kept))
+    z = kept.sensor_zero.to_json()
+    assert not z["identified"] and z["points"] == len(ds) and z["offsets"] == [None, None]
+    assert "each point's own mean" in " ".join(_sensor_zero({"sensor_zero": z}))
+    with pytest.raises(ValueError, match="own-means or identified"):
+        with_sensor_zero(ds, zero="guessed")

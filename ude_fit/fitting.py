@@ -308,16 +308,16 @@ def _train_starts(mech_model, data: TrainingData, opts: FitOptions, keys, say,
 
 
 def prepare(ds: OrbitDataset, system: str, reference: dict | None, samples: int,
-            geometry: dict | None = None):
-    """Checks and the arrays every pipeline starts from: (the dataset about the rig's rest
-    position, training data, diagram ranges, Hopf/fold reference, where the reference came
-    from). ``geometry``: the mechanistic model's known geometry, for a zero no file
-    recorded (:func:`~.training.sensor_zero.with_sensor_zero`)."""
+            geometry: dict | None = None, zero: str = "own-means"):
+    """Checks and the arrays every pipeline starts from: (the dataset with its sensors'
+    zero as ``zero`` asks where no file recorded it, training data, diagram ranges,
+    Hopf/fold reference, where the reference came from). ``geometry``: the mechanistic
+    model's known geometry, for that zero (:func:`~.training.sensor_zero.with_sensor_zero`)."""
     if len(ds) == 0:
         raise DataError("the dataset is empty")
     if ds.system != system:
         raise DataError(f"the data is {ds.system} data, not {system}")
-    ds = with_sensor_zero(ds, geometry)
+    ds = with_sensor_zero(ds, geometry, zero)
     data = training_data(ds, n=samples)
     if reference:
         return ds, data, diagram_ranges(ds), dict(reference), "given"
@@ -436,7 +436,8 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
     if reference is None:
         reference = opts.reference() or None
     ds, data, ranges, ref, ref_source = prepare(
-        ds, opts.system, reference, opts.samples, known_geometry(opts.mechanistic_parameters))
+        ds, opts.system, reference, opts.samples, known_geometry(opts.mechanistic_parameters),
+        opts.sensor_zero)
     if mechanistic is not None:
         ident = None
         choice = opts.control()

@@ -54,6 +54,11 @@ class PipelineOptions:
         """The user's parameter file (the fit's), which the loop's models share."""
         return self.fit.mechanistic_parameters
 
+    @property
+    def sensor_zero(self) -> str:
+        """Where the points' rest position comes from (the fit's choice, the loop's too)."""
+        return self.fit.sensor_zero
+
     def loop_json(self) -> dict:
         """The loop's options as its metrics.json records them."""
         return {"system": self.fit.system, "seed": self.fit.seed, "bootstrap": self.bootstrap,
@@ -82,9 +87,10 @@ def run_pipeline(ds: OrbitDataset, options: PipelineOptions, *,
     require_float64("run_pipeline")
     say = progress or (lambda **kw: None)
     opts = options.fit
-    # the fit and the loop on one dataset about the rig's rest position (its zero, where no
-    # file recorded it, identified once with the user's geometry)
-    ds = with_sensor_zero(ds, known_geometry(options.mechanistic_parameters))
+    # the fit and the loop on one dataset about one rest position (where no file recorded
+    # it and the options ask for it identified, identified once with the user's geometry)
+    ds = with_sensor_zero(ds, known_geometry(options.mechanistic_parameters),
+                          options.sensor_zero)
     say(event="stage", stage=f"pipeline 1/2: fit (mechanistic model and UDE, {opts.starts} "
         "starts)")
     fitted = fit(ds, opts, progress=progress)

@@ -48,21 +48,21 @@ def start(args, build_options):
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     from ..fitting import known_geometry
-    ds = load_data(args, known_geometry(opts.mechanistic_parameters))
+    ds = load_data(args, known_geometry(opts.mechanistic_parameters), opts.sensor_zero)
     return opts, ds, out_dir(args.out), Progress(args.quiet)
 
 
-def load_data(args, geometry: dict | None = None):
-    """The dataset DATA... and --system (and --stability) ask for, about the rig's rest
-    position (where a file does not record it, identified with the mechanistic model of
-    the known ``geometry``, the design's where None: training.sensor_zero)."""
+def load_data(args, geometry: dict | None = None, zero: str = "own-means"):
+    """The dataset DATA... and --system (and --stability) ask for, with the sensors' zero
+    where a file does not record it as ``zero`` asks (training.sensor_zero; identified with
+    the mechanistic model of the known ``geometry``, the design's where None)."""
     from ..data import StabilityLabels
     from ..training.sensor_zero import with_sensor_zero
     try:
         labels = StabilityLabels.parse(args.stability)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    return with_sensor_zero(load(args.data, args.system, labels), geometry)
+    return with_sensor_zero(load(args.data, args.system, labels), geometry, zero)
 
 
 class Progress:

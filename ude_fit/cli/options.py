@@ -74,6 +74,7 @@ def add_fit_arguments(p) -> None:
     """Every option of a fit (:class:`FitOptions`): the same flags, the same defaults, for
     every command that fits."""
     from ..training.options import COLLOCATION_SERIES, DEFAULT_STARTS
+    from ..training.sensor_zero import SENSOR_ZERO
     from ..training.penalties import PENALTIES
 
     p.add_argument("--approximator", default="nn", choices=("nn", "gp"),
@@ -93,6 +94,11 @@ def add_fit_arguments(p) -> None:
                    "measured 1.3x faster than one after another on 2 cores, see "
                    "docs/benchmarks.md)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--sensor-zero", default="own-means", choices=SENSOR_ZERO,
+                   help="where the points' rest position comes from when their files do not "
+                   "record it (wind-tunnel .mat files): each point's own mean (default), or "
+                   "identified from all points with the mechanistic model (and the zero-lift "
+                   "incidence whose lift moves it with the airspeed)")
     p.add_argument("--width", type=positive_int("--width"), default=12,
                    help="hidden units per layer of the NN (default 12)")
     p.add_argument("--depth", type=positive_int("--depth"), default=2,
@@ -271,7 +277,7 @@ def fit_options(args):
         mechanistic=args.mechanistic,
         control_input=args.control_input, control_gain=args.control_gain,
         guide_orbits=args.guide_orbits, guide_weight=args.guide_weight,
-        guide_rounds=args.guide_rounds,
+        guide_rounds=args.guide_rounds, sensor_zero=args.sensor_zero,
         reference_hopf=args.reference_hopf, reference_fold=args.reference_fold,
         train=TrainConfig(width=args.width, depth=args.depth, param_scale=args.param_scale,
                           param_dependence=args.param_dependence,

@@ -53,44 +53,49 @@ def _lee_file(path: str) -> Orbit:
         if d.size and np.all(d > 0) and np.ptp(d) <= 1e-6 * np.median(d):
             rate = 1.0 / float(np.median(d))
     t = np.arange(n) / rate
-    # volts -> metres, at the edge. The sensor's DC level (~3.3 V) and the encoder's zero
-    # are not the rig's rest position, and neither is recorded: the means stay in the
-    # sensors' frame (zero_known=False) until the dataset's zero is identified from all
-    # its points (training.sensor_zero). Each file's own mean is not that zero: an
-    # asymmetric restoring force moves a large orbit's mean away from rest.
-    heave = data[0] * LEE_HEAVE_M_PER_V
+    heave = data[0] * LEE_HEAVE_M_PER_V              # volts -> metres, at the edge
+    # The sensor's DC level (~3.3 V) and the encoder's zero are not the rig's rest
+    # position, and neither is recorded: the orbit is kept about its own mean, and that
+    # mean in the sensors' frame beside it (sensor_means), for the dataset's zero to be
+    # identified from all points (training.sensor_zero) where the fit asks for it
+    heave_level = heave.mean()
+    heave = heave - heave_level                      # the sensor's ~3.3 V offset
     raw = data[3]
     # The pitch row is not wrapped in these files: its valid readings stay within
     # 0.26..0.46 rad, but 2-22 % of the samples, in bursts of ~15 at a few fixed angles,
     # read exactly 2 pi (1 - 2^-20) = 6.283179 rad, the 20-bit encoder's all-ones code: a
     # failed read. np.unwrap would turn each burst into a -0.35 rad spike (residual RMS as
     # large as the pitch amplitude), so those samples are left out of the pitch fit, and
-    # only the valid ones are unwrapped (a no-op here). The mean kept is the fitted one
-    # (below), not the plain mean of the valid reads: the failed reads cluster at a few
-    # angles of the cycle, and the plain mean of the samples left would be biased by where
-    # they fall (-5 mrad, a fifth of the pitch amplitude, on the lee2020 points with 18-22 %
-    # of the reads failed). It is the encoder's angle, taken into [0, 2 pi) as the encoder
-    # reads it.
+    # only the valid ones are unwrapped (a no-op here). The encoder's absolute angle holds
+    # the rig's zero, so the offset is removed as for the heave: the mean, here the fitted
+    # one (below), since the failed reads cluster at a few angles of the cycle and the plain
+    # mean of the samples left would be biased by where they fall (-5 mrad, a fifth of the
+    # pitch amplitude, on the lee2020 points with 18-22 % of the reads failed).
     ok = np.isfinite(raw) & (raw < LEE_PITCH_INVALID)
     if ok.sum() < 8 * NCOEF:
         raise DataError(f"{path}: only {int(ok.sum())} valid pitch samples")
     pitch = np.zeros(n)
     pitch[ok] = np.unwrap(raw[ok])
+    pitch_level = pitch[ok].mean()
+    pitch[ok] -= pitch_level                       # (for conditioning; the fit's mean follows)
     if not np.all(np.isfinite(heave)):
         raise DataError(f"{path}: the heave row holds non-finite samples")
     freq = refine_frequency(t, heave, f0)
     phi = 2.0 * np.pi * freq * t
     valid = np.column_stack([np.ones(n, dtype=bool), ok])
     coeffs, noise = _fit(phi, np.column_stack([heave, pitch]), K, valid)
-    coeffs[1, 0] = coeffs[1, 0] % (2 * np.pi)
+    # the fitted means in the sensors' frame (the encoder's angle in [0, 2 pi), as it reads)
+    sensor_means = np.array([heave_level + coeffs[0, 0],
+                             (pitch_level + coeffs[1, 0]) % (2 * np.pi)])
+    coeffs[1, 0] = 0.0                             # the pitch's offset: its fitted mean
     # the control target (row 1) is in the heave sensor's volts, the control (row 2) in the
     # actuator's volts (its gain N/V is not in the files)
     holding = measure_holding(phi, data[0], data[1], data[2], "V")
     control = None
     if np.all(np.isfinite(data[2])):
         control = _fit(phi, data[2][:, None].astype(float), K)[0][0]
-        # the actuator's zero is not recorded either, so the control's mean is no known
-        # static force: it is left out
+        # the heave's mean was removed (the sensor's offset), so the static force balance
+        # it would close is unknown: the control's mean is left out with it
         control[0] = 0.0
     stable = stability_from_name(path)
     coeffs, control = _flutter_frame(coeffs, control)
@@ -98,15 +103,15 @@ def _lee_file(path: str) -> Orbit:
                  stability_from="" if stable is None else "file name",
                  coeffs=coeffs, forcing=None, noise=noise,
                  periods=n / rate * freq, source=path, holding=holding, control=control,
-                 zero_known=False)
+                 sensor_means=sensor_means)
 
 
 def load_lee(path) -> OrbitDataset:
     """lee2020 model-2 CBC points: one .mat file, or a directory of them (all *.mat there,
-    in name order). Heave row 0 (V -> m at 0.18 m/V) and pitch row 3 (unwrapped), both
-    about their sensors' zero (``zero_known`` False); frequency from freq_actual, refined
-    on the record; stability from the file name (:data:`~.stability.NAME_CONVENTIONS`;
-    anything else unknown)."""
+    in name order). Heave row 0 (V -> m at 0.18 m/V, DC removed), pitch row 3 (unwrapped,
+    mean removed), each mean kept in the sensors' frame (``sensor_means``); frequency from
+    freq_actual, refined on the record; stability from the file name
+    (:data:`~.stability.NAME_CONVENTIONS`; anything else unknown)."""
     path = os.fspath(path)
     _check_file(path, allow_dir=True)
     if os.path.isdir(path):

@@ -94,10 +94,12 @@ class Orbit:
       volts in the lee2020 files); None where the file does not record it. A fit may take
       it as a known input (``--control-input``); the oscillator's ``forcing`` already holds
       its control (the total excitation).
-    zero_known: whether ``coeffs``' means are about the rig's rest position (a campaign
-      file's coordinates) or about a sensor zero the file does not record (False: the
-      lee2020 heave sensor's DC level and the pitch encoder's absolute angle are in them;
-      :func:`~ude_fit.training.sensor_zero.with_sensor_zero` identifies that zero).
+    sensor_means: (n_coord,) the orbit's means in the sensors' frame where the file does
+      not record the rig's rest position (the lee2020 heave sensor's DC level, the pitch
+      encoder's angle); ``coeffs`` are then about the orbit's own mean, until
+      :func:`~ude_fit.training.sensor_zero.with_sensor_zero` puts them about the rest
+      position identified from all points. None: ``coeffs`` are about the rig's rest
+      position (a campaign file's coordinates).
     """
 
     parameter: float
@@ -111,7 +113,7 @@ class Orbit:
     stability_from: str = ""
     holding: Holding | None = None
     control: np.ndarray | None = None
-    zero_known: bool = True
+    sensor_means: np.ndarray | None = None
 
     def __post_init__(self):
         c = _frozen(self.coeffs)
@@ -123,6 +125,12 @@ class Orbit:
             if fc.shape != (NCOEF,):
                 raise ValueError(f"{self.source}: forcing must be ({NCOEF},), got {fc.shape}")
             object.__setattr__(self, "forcing", fc)
+        if self.sensor_means is not None:
+            sm = _frozen(self.sensor_means)
+            if sm.shape != (c.shape[0],):
+                raise ValueError(f"{self.source}: sensor_means must be ({c.shape[0]},), got "
+                                 f"{sm.shape}")
+            object.__setattr__(self, "sensor_means", sm)
         if self.control is not None:
             uc = _frozen(self.control)
             if uc.shape != (NCOEF,):
@@ -135,6 +143,11 @@ class Orbit:
         object.__setattr__(self, "periods", float(self.periods))
         if self.stable is not None:
             object.__setattr__(self, "stable", bool(self.stable))
+
+    @property
+    def zero_known(self) -> bool:
+        """Whether ``coeffs`` are about the rig's rest position."""
+        return self.sensor_means is None
 
     @property
     def amplitude(self) -> float:

@@ -133,9 +133,9 @@ def _sensor_zero(d: dict) -> list[str]:
     if not z:
         return []
     if not z["identified"]:
-        return [f"The files of {z['points']} point(s) do not record the sensors' zero, and "
-                "these points cannot pin a common one: each point's own mean was taken as "
-                "its zero.", ""]
+        return [f"The files of {z['points']} point(s) do not record the sensors' zero; the "
+                f"zero used: {z['method']} (`--sensor-zero identified` identifies the rest "
+                "position from all points).", ""]
     where = ", ".join(f"{c} {v:.5g} ± {e:.2g}" for c, v, e in
                       zip(z["coordinates"], z["offsets"], z["std_error"]))
     moved = ""

@@ -19,6 +19,7 @@ from ..models.mechanistic import SYSTEMS
 from ..models.parameter_file import MechanisticParameters
 from .control import ControlChoice
 from .penalties import Penalty
+from .sensor_zero import SENSOR_ZERO
 
 APPROXIMATORS = ("nn", "gp")
 TRAININGS = ("trajectory", "periodic")
@@ -280,8 +281,14 @@ class FitOptions:
     # adequacy rule's fold count or misses a point (ude_fit.guide_rounds; aerofoil), the first at
     # guide_weight; None: DEFAULT_GUIDE_ROUNDS where they apply, else 0
     guide_rounds: int | None = None
+    # where the points' rest position comes from when their files do not record it
+    # (training.sensor_zero): "own-means" (each point's own mean) or "identified"
+    sensor_zero: str = "own-means"
 
     def __post_init__(self):
+        if self.sensor_zero not in SENSOR_ZERO:
+            raise ValueError(f"--sensor-zero must be {' or '.join(SENSOR_ZERO)}, not "
+                             f"{self.sensor_zero!r}")
         if self.system not in SYSTEMS:
             raise ValueError(f"--system must be {' or '.join(SYSTEMS)}, not {self.system!r}")
         if self.approximator not in APPROXIMATORS:
