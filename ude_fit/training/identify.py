@@ -232,6 +232,16 @@ def _bounded_solve(M, y, lower):
     return np.linalg.lstsq(M, y, rcond=None)[0]
 
 
+def equation_residual(data: TrainingData, system: str, w_eq: np.ndarray,
+                      base: dict | None = None) -> np.ndarray:
+    """The weighted equation error left by :func:`identify`'s bounded solve on ``data``,
+    with the equations' weights ``w_eq`` given (held fixed where the data are varied)."""
+    A, b, names, _ = regression(data, system, base)
+    Aw, bw, col = _weighted(A, b, w_eq)
+    theta = _bounded_solve(Aw / col, bw, _lower_bounds(system, names)) / col
+    return bw - Aw @ theta
+
+
 def build(system: str, base: dict | None, values: dict, effects: tuple = ()):
     """The (refined) mechanistic model from identified ``values`` (names as identify's)."""
     mech = model_class(system).from_values(values, base)

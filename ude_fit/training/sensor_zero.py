@@ -36,15 +36,14 @@ from scipy.optimize import least_squares
 
 from ..data.orbit import OrbitDataset
 from ..models.mechanistic import Drive, model_class
-from .identify import (_bounded_solve, _lower_bounds, _weighted, build, equation_weights,
-                       regression, training_data)
+from .identify import (_bounded_solve, _lower_bounds, _weighted, build, equation_residual,
+                       equation_weights, regression, training_data)
 
 SAMPLES = 32              # phases per orbit in the regression (the fit's default)
 # how steep the equation error must be along every offset, relative to its steepest one (the
 # singular values of its Jacobian): flatter is a zero the model's terms do not see
 IDENTIFIABLE = 1e-6
 INCIDENCE = "incidence"   # the load-free offset's name among the regression's unknowns
-SENSOR_ZERO = ("own-means", "identified")      # what a fit takes as the sensors' zero
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,8 +57,8 @@ class SensorZero:
     std_error: tuple[float, ...]
     identified: bool            # False: each point's own mean was kept as its zero
     points: int                 # how many points' zeros were unknown
-    # equation error (weighted RMS; the load-free offset among the unknowns) with each
-    # point's own mean, and with the zero used (None where no zero was identified)
+    # equation error (weighted RMS) with each point's own mean, and with the zero used
+    # (None where no zero was identified)
     error_own_means: float | None
     error: float | None
     # the offset between the rest position and the load-free one (an aerofoil's zero-lift
@@ -136,12 +135,16 @@ def _static_deflection(ds: OrbitDataset, values: dict, base: dict | None) -> np.
     if not incidence:
         return np.zeros((len(ds), len(ds.coordinates)))
     mech = build(ds.system, base, values)
-    rest = jnp.zeros(mech.n_dof)
-    force = lambda q, V: mech.force(q, rest, Drive.of(V))
-    stiffness = -jax.vmap(jax.jacfwd(force), in_axes=(None, 0))(rest, jnp.asarray(
-        ds.parameters()))
+    zero = jnp.zeros(mech.n_dof)
     load = model_class(ds.system).incidence_load(ds.parameters(), base) * incidence
-    return np.linalg.solve(np.asarray(stiffness), load[:, :, None])[:, :, 0]
+    out = []
+    for V, f in zip(ds.parameters(), load):
+        stiffness = -jax.jacfwd(lambda q: mech.force(q, zero, Drive.of(V)))(zero)
+        out.append(np.linalg.solve(np.asarray(stiffness), f))
+    return np.asarray(out)
+
+
+SENSOR_ZERO = ("own-means", "identified")      # what a fit takes as the sensors' zero
 
 
 def with_sensor_zero(ds: OrbitDataset, base: dict | None = None,
@@ -166,7 +169,7 @@ def with_sensor_zero(ds: OrbitDataset, base: dict | None = None,
             None, (0.0,) * n, "each point's own mean (the default)"))
     data_own = training_data(ds, n=SAMPLES)
     w_eq = equation_weights(regression(data_own, ds.system, base)[1])
-    error_own = _rms(_residual(data_own, ds.system, w_eq, base)[0])
+    error_own = _rms(equation_residual(data_own, ds.system, w_eq, base))
     means = _sensor_means(ds, unknown)
     start = means[unknown].mean(axis=0)
     # the offsets are searched in units of each coordinate's largest first harmonic
