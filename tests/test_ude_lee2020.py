@@ -54,11 +54,13 @@ def test_both_models_fitted_to_the_11_points(lee_fit):
     assert "physical bound 0" in ident["sources"]["c_h"]
     assert set(ident["sources"]) >= {"b", "m_T", "c_h", "k_h", "k_alpha3"}
     assert (out / "ude.eqx").exists() and (out / "diagram.png").exists()
-    # the files record neither sensor's zero: by default each point's own mean, said so
+    # the files record neither sensor's zero: the default (auto) keeps each point's own
+    # mean, the mechanistic model missing every point with the identified zero as well
     zero = m["data"]["sensor_zero"]
     assert not zero["identified"] and zero["points"] == 11
-    assert zero["method"] == "each point's own mean (the default)"
-    assert m["options"]["sensor_zero"] == "own-means"
+    assert zero["method"].startswith("each point's own mean; chosen (auto)")
+    assert zero["judged"]["identified"]["missed"] == 11
+    assert m["options"]["sensor_zero"] == "auto"
 
 
 def test_ude_reproduces_every_point_with_its_stability(lee_fit):

@@ -16,7 +16,8 @@ import pytest
 from tests.lee_format import (HEAVE_M_PER_V, HEAVE_OFFSET_V, PITCH_OFFSET_RAD,
                                point_airspeeds, truth_of, write_lee_campaign)
 from ude_fit.data import load
-from ude_fit.fitting import identify_mechanistic, prepare
+from ude_fit.fitting import identify_mechanistic, prepare, with_chosen_zero
+from ude_fit.training.options import FitOptions
 from ude_fit.training.sensor_zero import with_sensor_zero
 
 PHYSICS = ("k_alpha=70", "k_h=3600", "c_h=10")      # the benchmark's "stiff" configuration
@@ -60,8 +61,7 @@ def test_the_sensors_zero_is_identified_and_the_stiffness_with_it(written):
     about the rig's rest position identified from the points, the orbits give the configured
     rig's pitch stiffness (70, 774.7, 3490.7; the quasi-steady model's error is the wake's
     lag); taken each about its own mean, the quadratic stiffness's pull on a large orbit's
-    mean is lost and the identification mistakes it (the default, ``--sensor-zero
-    own-means``)."""
+    mean is lost and the identification mistakes it (``--sensor-zero own-means``)."""
     folder, _ = written
     ds = load(folder, "flutter")
     zeroed = with_sensor_zero(ds, zero="identified")
@@ -79,6 +79,24 @@ def test_the_sensors_zero_is_identified_and_the_stiffness_with_it(written):
     truth = np.array([70.0, 774.7, 3490.7])
     np.testing.assert_allclose(pitch_stiffness(zeroed), truth, rtol=0.03)
     assert abs(pitch_stiffness(with_sensor_zero(ds))[0] / truth[0] - 1) > 0.2
+
+
+def test_the_default_takes_the_identified_zero_where_the_model_meets_the_points_with_it(
+        written):
+    """``auto`` (the default): with each point's own mean the mechanistic model misses
+    points of this rig's diagram; with the identified zero it meets them all, so the fit
+    takes the identified zero, and the record says why, with both diagrams' figures."""
+    folder, _ = written
+    ds = load(folder, "flutter")
+    chosen = with_chosen_zero(ds, FitOptions(system="flutter"))
+    z = chosen.sensor_zero
+    assert z.identified and not chosen.zero_unknown().any()
+    assert z.judged["identified"]["missed"] == 0 < z.judged["own-means"]["missed"]
+    assert "chosen (auto)" in z.method and "better" in z.method
+    identified = with_sensor_zero(ds, zero="identified")
+    assert all(np.array_equal(a.coeffs, b.coeffs) for a, b in zip(chosen, identified))
+    # a zero chosen once is not chosen again (the pipeline's loop sees the fit's)
+    assert with_chosen_zero(chosen, FitOptions(system="flutter")) is chosen
 
 
 def test_a_configuration_without_a_campaigns_two_orbits_is_refused(tmp_path):

@@ -22,6 +22,7 @@ from tests import ude_fixtures as F
 from ude_fit import cli
 from ude_fit.data import DataError, StabilityLabels, load
 from ude_fit.data.holding import SIGNIFICANCE, measure_holding
+from ude_fit.training.options import FitOptions
 
 import jax  # noqa: E402  (after the imports above, before any array)
 
@@ -343,8 +344,8 @@ def test_a_pitch_wrapped_at_2pi_is_unwrapped(tmp_path, offset):
     assert o.noise[1] < 1e-6 * 0.05
 
 
-def test_the_default_keeps_each_points_own_mean_and_says_so(named):
-    """Without --sensor-zero identified the orbits stay about their own means, as loaded,
+def test_own_means_keep_each_points_mean_and_say_so(named):
+    """With ``--sensor-zero own-means`` the orbits stay about their own means, as loaded,
     and the record (metrics.json, the report) says which zero was used."""
     from ude_fit.report.markdown import _sensor_zero
     from ude_fit.training.sensor_zero import with_sensor_zero
@@ -357,3 +358,24 @@ def test_the_default_keeps_each_points_own_mean_and_says_so(named):
     assert "each point's own mean" in " ".join(_sensor_zero({"sensor_zero": z}))
     with pytest.raises(ValueError, match="own-means or identified"):
         with_sensor_zero(ds, zero="guessed")
+    with pytest.raises(ValueError, match="--sensor-zero must be auto, own-means, identified"):
+        FitOptions(system="flutter", sensor_zero="guessed")
+
+
+def test_lee2020_keeps_its_own_means_where_the_identified_zero_does_not_help(lee2020_dir):
+    """``auto`` on the real points: the mechanistic model misses all 11 with the identified
+    zero as with each point's own mean, so the identified zero has not shown it is placed
+    right, and each point keeps its own mean: the orbits exactly as loaded. The report
+    says which zero and why."""
+    from ude_fit.fitting import with_chosen_zero
+    from ude_fit.report.markdown import _sensor_zero
+
+    ds = load(lee2020_dir / "model2", "flutter")
+    chosen = with_chosen_zero(ds, FitOptions(system="flutter"))
+    assert all(np.array_equal(a.coeffs, b.coeffs) for a, b in zip(ds, chosen))
+    z = chosen.sensor_zero.to_json()
+    assert not z["identified"] and z["points"] == 11
+    assert z["judged"] == {"own-means": {"missed": 11, "branch_rms": None},
+                           "identified": {"missed": 11, "branch_rms": None}}
+    line = " ".join(_sensor_zero({"sensor_zero": z}))
+    assert "each point's own mean" in line and "no better" in line

@@ -15,8 +15,7 @@ from dataclasses import dataclass
 from ._precision import require_float64
 from .data.orbit import OrbitDataset
 from .discovery.loop import LoopResult, close_loop
-from .fitting import FitResult, fit, known_geometry
-from .training.sensor_zero import with_sensor_zero
+from .fitting import FitResult, fit, with_chosen_zero
 from .training.options import FitOptions
 
 
@@ -49,16 +48,6 @@ class PipelineOptions:
             raise ValueError(f"--min-gain must be at least 0 and below 1, not "
                              f"{self.min_gain!r}")
 
-    @property
-    def mechanistic_parameters(self):
-        """The user's parameter file (the fit's), which the loop's models share."""
-        return self.fit.mechanistic_parameters
-
-    @property
-    def sensor_zero(self) -> str:
-        """Where the points' rest position comes from (the fit's choice, the loop's too)."""
-        return self.fit.sensor_zero
-
     def loop_json(self) -> dict:
         """The loop's options as its metrics.json records them."""
         return {"system": self.fit.system, "seed": self.fit.seed, "bootstrap": self.bootstrap,
@@ -88,9 +77,8 @@ def run_pipeline(ds: OrbitDataset, options: PipelineOptions, *,
     say = progress or (lambda **kw: None)
     opts = options.fit
     # the fit and the loop on one dataset about one rest position (where no file recorded
-    # it and the options ask for it identified, identified once with the user's geometry)
-    ds = with_sensor_zero(ds, known_geometry(options.mechanistic_parameters),
-                          options.sensor_zero)
+    # it, chosen once as the fit's options ask)
+    ds = with_chosen_zero(ds, opts)
     say(event="stage", stage=f"pipeline 1/2: fit (mechanistic model and UDE, {opts.starts} "
         "starts)")
     fitted = fit(ds, opts, progress=progress)

@@ -39,30 +39,29 @@ def out_dir(path: str) -> str:
     return path
 
 
-def start(args, build_options):
+def start(args, build_options, fit_of=lambda opts: opts):
     """What a fitting command does first, in this order so that nothing is written for bad
-    input: its options (a ValueError becomes the usage error), the data, the output
-    folder, the progress display. Returns (options, dataset, folder, progress)."""
+    input: its options (a ValueError becomes the usage error), the data about the sensors'
+    zero the fit's options (``fit_of(options)``) ask for, the output folder, the progress
+    display. Returns (options, dataset, folder, progress)."""
     try:
         opts = build_options(args)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    from ..fitting import known_geometry
-    ds = load_data(args, known_geometry(opts.mechanistic_parameters), opts.sensor_zero)
+    from ..fitting import with_chosen_zero
+    ds = with_chosen_zero(load_data(args), fit_of(opts))
     return opts, ds, out_dir(args.out), Progress(args.quiet)
 
 
-def load_data(args, geometry: dict | None = None, zero: str = "own-means"):
-    """The dataset DATA... and --system (and --stability) ask for, with the sensors' zero
-    where a file does not record it as ``zero`` asks (training.sensor_zero; identified with
-    the mechanistic model of the known ``geometry``, the design's where None)."""
+def load_data(args):
+    """The dataset DATA... and --system (and --stability) ask for, each point about its own
+    mean where its file does not record the sensors' zero (training.sensor_zero)."""
     from ..data import StabilityLabels
-    from ..training.sensor_zero import with_sensor_zero
     try:
         labels = StabilityLabels.parse(args.stability)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    return with_sensor_zero(load(args.data, args.system, labels), geometry, zero)
+    return load(args.data, args.system, labels)
 
 
 class Progress:

@@ -39,7 +39,7 @@ def pipeline_options(args) -> PipelineOptions:
 
 
 def run(args, argv) -> int:
-    opts, ds, out, progress = start(args, pipeline_options)
+    opts, ds, out, progress = start(args, pipeline_options, lambda o: o.fit)
     result = run_pipeline(ds, opts, progress=progress)
     doc = write_pipeline(out, ds, result, provenance(command_line(argv), args.data))
     print(f"wrote {out}/: report.md, metrics.json, diagram.png, fit/, loop/")

@@ -150,7 +150,8 @@ def _sensor_zero(d: dict) -> list[str]:
             f"rest position was identified in the sensors' frame ({where}; SI units) with "
             "the mechanistic model's parameters, the equation error "
             f"{z['equation_error']:.4g} against {z['equation_error_own_means']:.4g} with "
-            "each point's own mean as its zero." + moved, ""]
+            "each point's own mean as its zero." + moved
+            + (f" Method: {z['method']}." if z.get("judged") else ""), ""]
 
 
 def _holding(d: dict, control: dict | None) -> list[str]:

@@ -19,7 +19,7 @@ from ..models.mechanistic import SYSTEMS
 from ..models.parameter_file import MechanisticParameters
 from .control import ControlChoice
 from .penalties import Penalty
-from .sensor_zero import SENSOR_ZERO
+from .sensor_zero import AUTO, SENSOR_ZERO_CHOICES
 
 APPROXIMATORS = ("nn", "gp")
 TRAININGS = ("trajectory", "periodic")
@@ -282,12 +282,13 @@ class FitOptions:
     # guide_weight; None: DEFAULT_GUIDE_ROUNDS where they apply, else 0
     guide_rounds: int | None = None
     # where the points' rest position comes from when their files do not record it
-    # (training.sensor_zero): "own-means" (each point's own mean) or "identified"
-    sensor_zero: str = "own-means"
+    # (training.sensor_zero): "own-means" (each point's own mean), "identified", or "auto":
+    # the identified one where the mechanistic model meets the points better with it
+    sensor_zero: str = AUTO
 
     def __post_init__(self):
-        if self.sensor_zero not in SENSOR_ZERO:
-            raise ValueError(f"--sensor-zero must be {' or '.join(SENSOR_ZERO)}, not "
+        if self.sensor_zero not in SENSOR_ZERO_CHOICES:
+            raise ValueError(f"--sensor-zero must be {', '.join(SENSOR_ZERO_CHOICES)}, not "
                              f"{self.sensor_zero!r}")
         if self.system not in SYSTEMS:
             raise ValueError(f"--system must be {' or '.join(SYSTEMS)}, not {self.system!r}")
