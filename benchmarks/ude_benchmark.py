@@ -226,7 +226,8 @@ def _periodic_step(path: str, repeats: int = 20) -> dict:
     import equinox as eqx
     import jax.numpy as jnp
     from ude_fit import load
-    from ude_fit.fitting import identify_mechanistic, prepare
+    from ude_fit.fitting import prepare
+    from ude_fit.mechanistic_stage import identify_mechanistic
     from ude_fit.models.ude import UDE
     from ude_fit.training.collocation import collocation_loss, collocation_unknowns
     from ude_fit.training.losses import periodic_loss

@@ -71,7 +71,8 @@ def mechanistic_cases(folder: Path, loose: float, effects: tuple = (), *,
     ``effects`` added ((key, shape or None) pairs, as --add), on the campaigns written
     under ``folder``."""
     from ude_fit.data import load
-    from ude_fit.fitting import mechanistic_stage, prepare
+    from ude_fit.fitting import prepare
+    from ude_fit.mechanistic_stage import mechanistic_stage
     from ude_fit.models.ude import UDE
     from ude_fit.training.identify import augment
     from ude_fit.training.options import FitOptions

@@ -21,7 +21,8 @@ from tests.test_ude_realdata import write_lee
 from ude_fit import cli
 from ude_fit._fourier import K
 from ude_fit.data import load
-from ude_fit.fitting import identify_mechanistic, prepare
+from ude_fit.fitting import prepare
+from ude_fit.mechanistic_stage import identify_mechanistic
 from ude_fit.models.mechanistic import FLUTTER_NOMINAL
 from ude_fit.training.control import against_heave_stiffness, with_control
 from ude_fit.training.identify import INPUT_GAIN

@@ -16,7 +16,8 @@ import pytest
 from tests.lee_format import (HEAVE_M_PER_V, HEAVE_OFFSET_V, PITCH_OFFSET_RAD,
                                point_airspeeds, truth_of, write_lee_campaign)
 from ude_fit.data import load
-from ude_fit.fitting import identify_mechanistic, prepare, with_chosen_zero
+from ude_fit.fitting import prepare
+from ude_fit.mechanistic_stage import identify_mechanistic, with_chosen_zero
 from ude_fit.training.options import FitOptions
 from ude_fit.training.sensor_zero import with_sensor_zero
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from ude_fit import FitOptions, load
-from ude_fit.fitting import mechanistic_stage, prepare
+from ude_fit.fitting import prepare
+from ude_fit.mechanistic_stage import mechanistic_stage
 from ude_fit.models.mechanistic import flutter_qs
 from ude_fit.models.ude import UDE
 from ude_fit.training.options import TrainConfig

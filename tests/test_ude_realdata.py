@@ -208,7 +208,8 @@ def negative_damping(tmp_path_factory):
 
 def test_negative_least_squares_damping_is_bounded_not_replaced(negative_damping):
     from ude_fit.analysis.diagram import _evaluate
-    from ude_fit.fitting import identify_mechanistic, prepare
+    from ude_fit.fitting import prepare
+    from ude_fit.mechanistic_stage import identify_mechanistic
     from ude_fit.models.ude import UDE
 
     _, data, ranges, ref, src = prepare(negative_damping, "flutter", None, 32)
@@ -233,7 +234,8 @@ def test_negative_least_squares_damping_is_bounded_not_replaced(negative_damping
 
 
 def test_parameter_file_values_are_used_and_said_so(negative_damping, tmp_path):
-    from ude_fit.fitting import identify_mechanistic, prepare
+    from ude_fit.fitting import prepare
+    from ude_fit.mechanistic_stage import identify_mechanistic
     from ude_fit.models.parameter_file import MechanisticParameters
 
     p = tmp_path / "rig.toml"
@@ -367,7 +369,7 @@ def test_lee2020_keeps_its_own_means_where_the_identified_zero_does_not_help(lee
     zero as with each point's own mean, so the identified zero has not shown it is placed
     right, and each point keeps its own mean: the orbits exactly as loaded. The report
     says which zero and why."""
-    from ude_fit.fitting import with_chosen_zero
+    from ude_fit.mechanistic_stage import with_chosen_zero
     from ude_fit.report.markdown import _sensor_zero
 
     ds = load(lee2020_dir / "model2", "flutter")

@@ -20,7 +20,7 @@ from ude_fit.discovery.describe import describe
 from ude_fit.discovery.locate import locate
 from ude_fit.discovery.routes import RouteComparison, RouteFinding, compare_routes, \
     learnt_correction
-from ude_fit.fitting import identify_mechanistic
+from ude_fit.mechanistic_stage import identify_mechanistic
 from ude_fit.models.library import band_limited, states_of
 from ude_fit.report.loop_markdown import routes_section
 

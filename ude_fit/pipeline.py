@@ -15,7 +15,8 @@ from dataclasses import dataclass
 from ._precision import require_float64
 from .data.orbit import OrbitDataset
 from .discovery.loop import LoopResult, close_loop
-from .fitting import FitResult, fit, with_chosen_zero
+from .fitting import FitResult, fit
+from .mechanistic_stage import with_chosen_zero
 from .training.options import FitOptions
 
 

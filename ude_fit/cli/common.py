@@ -48,7 +48,7 @@ def start(args, build_options, fit_of=lambda opts: opts):
         opts = build_options(args)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    from ..fitting import with_chosen_zero
+    from ..mechanistic_stage import with_chosen_zero
     ds = with_chosen_zero(load_data(args), fit_of(opts))
     return opts, ds, out_dir(args.out), Progress(args.quiet)
 

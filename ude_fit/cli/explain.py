@@ -7,7 +7,7 @@ import os
 
 from ..discovery.explain import explain
 from ..discovery.routes import learnt_correction
-from ..fitting import identify_with_control
+from ..mechanistic_stage import identify_with_control
 from ..model_file import load_model
 from ..report.files import provenance, write_json, write_text
 from ..report.loop_markdown import candidates_section, render_explain

@@ -41,7 +41,8 @@ from ..analysis.controlled import ControlledOrbits, controlled_orbits, judged, y
 from ..analysis.diagram import _evaluate
 from ..analysis.metrics_type import BranchSummary, ModelMetrics
 from ..data.orbit import OrbitDataset
-from ..fitting import fit, identify_mechanistic, identify_with_control, prepare
+from ..fitting import fit, prepare
+from ..mechanistic_stage import identify_mechanistic, identify_with_control
 from ..models.forms import state_parts
 from ..models.library import LIBRARY, STRUCTURAL, effect, states_of
 from ..models.refined import describe

@@ -24,7 +24,7 @@ equation error by 2 % and the default fit's adequate starts from 15, 13, 15 to 1
 on seeds 0-2; on simulated wind-tunnel files of three held-out configurations, whose points
 it meets with the identified zero, it lifts them from 2, 4 and 7 to 16, 16 and 15 of 16
 (docs/experiments.md, 2026-12-06/07). So by default (``auto``,
-:func:`ude_fit.fitting.with_chosen_zero`) the fit takes the identified zero only where the
+:func:`ude_fit.mechanistic_stage.with_chosen_zero`) the fit takes the identified zero only where the
 mechanistic model identified with it reproduces the measured diagram better than with
 each point's own mean.
 """
@@ -156,7 +156,7 @@ def _static_deflection(ds: OrbitDataset, values: dict, base: dict | None) -> np.
 
 SENSOR_ZERO = ("own-means", "identified")      # what a fit takes as the sensors' zero
 # what a user may ask for: one of them, or the one whose mechanistic model meets the
-# measured diagram better (ude_fit.fitting.with_chosen_zero)
+# measured diagram better (ude_fit.mechanistic_stage.with_chosen_zero)
 AUTO = "auto"
 SENSOR_ZERO_CHOICES = (AUTO, *SENSOR_ZERO)
 
