@@ -1,6 +1,6 @@
 """ude_fit's own shape (cycles and module sizes of all three packages: test_structure.py):
 its layers import only downwards (data -> models -> training -> analysis -> guide rounds ->
-fitting -> discovery -> report -> pipeline -> cli), importing it changes no global JAX
+mechanistic stage -> fitting -> discovery -> report -> pipeline -> cli), importing it changes no global JAX
 setting, and it imports neither the rig nor the controller."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from tests.test_structure import REPO, import_graph, package_modules
 
 # each layer may import from the layers before it, never from one after it
 UDE_FIT_LAYERS = ("_precision", "_fourier", "_systems", "data", "models", "training", "analysis",
-                  "model_file", "guide_rounds", "fitting", "discovery", "report", "pipeline",
-                  "sweep", "cli")
+                  "model_file", "guide_rounds", "mechanistic_stage", "fitting", "discovery",
+                  "report", "pipeline", "sweep", "cli")
 
 
 def test_ude_fit_layers_import_only_downwards():
