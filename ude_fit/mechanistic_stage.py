@@ -11,6 +11,7 @@ import dataclasses
 import numpy as np
 
 from .analysis.diagram import _evaluate, diagram_ranges
+from ._precision import require_float64
 from .data.estimates import estimate_from_data
 from .data.orbit import OrbitDataset
 from .models.mechanistic import FLUTTER_NOMINAL
@@ -35,6 +36,7 @@ def with_chosen_zero(ds: OrbitDataset, opts: FitOptions) -> OrbitDataset:
     configurations), one that misses them with either zero has not (lee2020/model2, where
     the identified zero lowers the equation error by 2 % and changes the quadratic pitch
     stiffness ninefold). The record keeps both diagrams' figures."""
+    require_float64("choosing the sensors' zero")
     geometry = known_geometry(opts.mechanistic_parameters)
     if opts.sensor_zero != AUTO:
         return with_sensor_zero(ds, geometry, opts.sensor_zero)
