@@ -10,10 +10,13 @@ fit on such files, against the rig's Hopf and fold, is a benchmark
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 
-from tests.lee_format import (HEAVE_M_PER_V, HEAVE_OFFSET_V, PITCH_OFFSET_RAD,
+jax.config.update("jax_enable_x64", True)       # ude_fit identifies and traces in float64
+
+from tests.lee_format import (HEAVE_M_PER_V, HEAVE_OFFSET_V, PITCH_OFFSET_RAD,  # noqa: E402
                                point_airspeeds, truth_of, write_lee_campaign)
 from ude_fit.data import load
 from ude_fit.fitting import prepare
@@ -98,6 +101,42 @@ def test_the_default_takes_the_identified_zero_where_the_model_meets_the_points_
     assert all(np.array_equal(a.coeffs, b.coeffs) for a, b in zip(chosen, identified))
     # a zero chosen once is not chosen again (the pipeline's loop sees the fit's)
     assert with_chosen_zero(chosen, FitOptions(system="flutter")) is chosen
+
+
+def _loop(folder, out, *flags):
+    """``ude-fit loop`` as a user runs it (a subprocess), its metrics.json and report."""
+    import json
+    import subprocess
+    import sys
+    r = subprocess.run([sys.executable, "-m", "ude_fit.cli", "loop", str(folder),
+                        "--system", "flutter", "--bootstrap", "10", "--quiet",
+                        "--out", str(out), *flags], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr
+    return json.loads((out / "metrics.json").read_text()), (out / "report.md").read_text()
+
+
+def test_the_loop_starts_from_the_zero_a_fit_would_choose_and_names_the_wake(written,
+                                                                           tmp_path):
+    """``ude-fit loop`` chooses the sensors' zero as the fit does: on this rig's files it
+    takes the identified zero, its mechanistic model meets every point, and the effect it
+    adds is what the rig has beyond that model, the wake's lag in heave, which brings the
+    diagram to the points. About each point's own mean (``--sensor-zero own-means``) its
+    mechanistic model misses points, which no quasi-steady term it could add puts back."""
+    folder, _ = written
+    doc, report = _loop(folder, tmp_path / "auto")
+    zero = doc["data"]["sensor_zero"]
+    assert zero["identified"] and "chosen (auto)" in zero["method"]
+    assert zero["judged"]["identified"]["missed"] == 0 < zero["judged"]["own-means"]["missed"]
+    assert "do not record the sensors' zero" in report and "chosen (auto)" in report
+    assert doc["before"]["missed"] == 0
+    assert doc["effect"]["key"] == "heave_unsteady_aero"
+    assert doc["after"]["missed"] == 0
+    assert doc["after"]["branch_rms"] < 0.5 * doc["before"]["branch_rms"]
+
+    own, _ = _loop(folder, tmp_path / "own", "--sensor-zero", "own-means")
+    assert not own["data"]["sensor_zero"]["identified"]
+    assert own["before"]["missed"] > 0 and own["after"]["missed"] > 0
 
 
 def test_a_configuration_without_a_campaigns_two_orbits_is_refused(tmp_path):

@@ -349,7 +349,7 @@ def test_a_pitch_wrapped_at_2pi_is_unwrapped(tmp_path, offset):
 def test_own_means_keep_each_points_mean_and_say_so(named):
     """With ``--sensor-zero own-means`` the orbits stay about their own means, as loaded,
     and the record (metrics.json, the report) says which zero was used."""
-    from ude_fit.report.markdown import _sensor_zero
+    from ude_fit.report.format import sensor_zero_lines
     from ude_fit.training.sensor_zero import with_sensor_zero
 
     ds = load(named, "flutter")
@@ -357,7 +357,7 @@ def test_own_means_keep_each_points_mean_and_say_so(named):
     assert all(np.array_equal(a.coeffs, b.coeffs) for a, b in zip(ds, kept))
     z = kept.sensor_zero.to_json()
     assert not z["identified"] and z["points"] == len(ds) and z["offsets"] == [None, None]
-    assert "each point's own mean" in " ".join(_sensor_zero({"sensor_zero": z}))
+    assert "each point's own mean" in " ".join(sensor_zero_lines({"sensor_zero": z}))
     with pytest.raises(ValueError, match="own-means or identified"):
         with_sensor_zero(ds, zero="guessed")
     with pytest.raises(ValueError, match="--sensor-zero must be auto, own-means, identified"):
@@ -370,7 +370,7 @@ def test_lee2020_keeps_its_own_means_where_the_identified_zero_does_not_help(lee
     right, and each point keeps its own mean: the orbits exactly as loaded. The report
     says which zero and why."""
     from ude_fit.mechanistic_stage import with_chosen_zero
-    from ude_fit.report.markdown import _sensor_zero
+    from ude_fit.report.format import sensor_zero_lines
 
     ds = load(lee2020_dir / "model2", "flutter")
     chosen = with_chosen_zero(ds, FitOptions(system="flutter"))
@@ -379,5 +379,5 @@ def test_lee2020_keeps_its_own_means_where_the_identified_zero_does_not_help(lee
     assert not z["identified"] and z["points"] == 11
     assert z["judged"] == {"own-means": {"missed": 11, "branch_rms": None},
                            "identified": {"missed": 11, "branch_rms": None}}
-    line = " ".join(_sensor_zero({"sensor_zero": z}))
+    line = " ".join(sensor_zero_lines({"sensor_zero": z}))
     assert "each point's own mean" in line and "no better" in line

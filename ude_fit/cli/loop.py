@@ -11,14 +11,15 @@ from ..report.files import provenance
 from ..report.loop_files import write_loop
 from ..training.options import FitOptions
 from .common import Progress, UsageError, command_line, load_data, out_dir
-from .options import (add_control_arguments, add_data_arguments, control_choice,
-                      nonnegative_float, positive_int)
+from .options import (add_control_arguments, add_data_arguments, add_sensor_zero_argument,
+                      control_choice, nonnegative_float, positive_int)
 
 
 def add_common(p) -> None:
     """What explain, refine and loop share."""
     add_data_arguments(p)
     add_control_arguments(p)
+    add_sensor_zero_argument(p)
     p.add_argument("--seed", type=int, default=0, help="random seed of the cross-validation "
                    "folds and bootstrap (default 0)")
     p.add_argument("--bootstrap", type=positive_int("--bootstrap"), default=200,
@@ -62,8 +63,11 @@ def add_parsers(sub) -> None:
 
 
 def data_and_control(args):
-    """The dataset and the control choice, checked before anything is written: a bad
-    --control-gain, or --control-input on data without control records, is a usage error."""
+    """The dataset about the sensors' zero --sensor-zero asks for (chosen as a fit chooses
+    it, :func:`~ude_fit.mechanistic_stage.with_chosen_zero`), and the control choice,
+    checked before anything is written: a bad --control-gain, or --control-input on data
+    without control records, is a usage error."""
+    from ..mechanistic_stage import with_chosen_zero
     from ..training.control import control_input
     try:
         choice = control_choice(args)
@@ -72,7 +76,10 @@ def data_and_control(args):
     ds = load_data(args)
     if choice is not None:
         control_input(ds, choice.gain)      # a DataError naming a point without a record
-    return ds, choice
+    zero = FitOptions(system=args.system, sensor_zero=args.sensor_zero,
+                      control_input=choice is not None,
+                      control_gain=None if choice is None else choice.gain)
+    return with_chosen_zero(ds, zero), choice
 
 
 def _options(args) -> dict:

@@ -70,11 +70,23 @@ def add_data_arguments(p) -> None:
                    "own labels; a rule that matches no point is an error")
 
 
+def add_sensor_zero_argument(p) -> None:
+    """--sensor-zero, which every command that identifies a mechanistic model takes."""
+    from ..training.sensor_zero import AUTO, SENSOR_ZERO_CHOICES
+    p.add_argument("--sensor-zero", default=AUTO, choices=SENSOR_ZERO_CHOICES,
+                   help="where the points' rest position comes from when their files do not "
+                   "record it (wind-tunnel .mat files): each point's own mean (own-means), "
+                   "identified from all points with the mechanistic model and the zero-lift "
+                   "incidence whose lift moves it with the airspeed (identified), or "
+                   "(auto, the default) the identified one where the mechanistic model "
+                   "identified with it meets the measured diagram better (fewer points "
+                   "missed, then a smaller branch error)")
+
+
 def add_fit_arguments(p) -> None:
     """Every option of a fit (:class:`FitOptions`): the same flags, the same defaults, for
     every command that fits."""
     from ..training.options import COLLOCATION_SERIES, DEFAULT_STARTS
-    from ..training.sensor_zero import AUTO, SENSOR_ZERO_CHOICES
     from ..training.penalties import PENALTIES
 
     p.add_argument("--approximator", default="nn", choices=("nn", "gp"),
@@ -94,14 +106,7 @@ def add_fit_arguments(p) -> None:
                    "measured 1.3x faster than one after another on 2 cores, see "
                    "docs/benchmarks.md)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--sensor-zero", default=AUTO, choices=SENSOR_ZERO_CHOICES,
-                   help="where the points' rest position comes from when their files do not "
-                   "record it (wind-tunnel .mat files): each point's own mean (own-means), "
-                   "identified from all points with the mechanistic model and the zero-lift "
-                   "incidence whose lift moves it with the airspeed (identified), or "
-                   "(auto, the default) the identified one where the mechanistic model "
-                   "identified with it meets the measured diagram better (fewer points "
-                   "missed, then a smaller branch error)")
+    add_sensor_zero_argument(p)
     p.add_argument("--width", type=positive_int("--width"), default=12,
                    help="hidden units per layer of the NN (default 12)")
     p.add_argument("--depth", type=positive_int("--depth"), default=2,

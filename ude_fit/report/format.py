@@ -27,3 +27,31 @@ def location(entry, *, none: str = "none found", error: str = "error {:+.3f}") -
 def short_location(entry) -> str:
     """As :func:`location`, for a table cell."""
     return location(entry, none=MISSING, error="{:+.3f}")
+
+
+def sensor_zero_lines(d: dict) -> list[str]:
+    """The report's paragraph on the sensors' zero of a document's ``data`` record (none
+    where every file recorded it)."""
+    z = d.get("sensor_zero")
+    if not z:
+        return []
+    if not z["identified"]:
+        return [f"The files of {z['points']} point(s) do not record the sensors' zero; the "
+                f"zero used: {z['method']} (`--sensor-zero identified` identifies the rest "
+                "position from all points).", ""]
+    where = ", ".join(f"{c} {v:.5g} ± {e:.2g}" for c, v, e in
+                      zip(z["coordinates"], z["offsets"], z["std_error"]))
+    moved = ""
+    if z.get("incidence") is not None:
+        spans = ", ".join(f"{c} {s:.3g}" for c, s in zip(z["coordinates"],
+                                                         z["deflection_span"]))
+        moved = (f" With it, the offset between the rest position and the load-free one "
+                 f"(the zero-lift incidence) {z['incidence']:.4g}, whose static load moves "
+                 f"the rest position over the points' airspeeds by {spans}; each point is "
+                 "taken about its own airspeed's rest position.")
+    return [f"The files of {z['points']} point(s) do not record the sensors' zero: the rig's "
+            f"rest position was identified in the sensors' frame ({where}; SI units) with "
+            "the mechanistic model's parameters, the equation error "
+            f"{z['equation_error']:.4g} against {z['equation_error_own_means']:.4g} with "
+            "each point's own mean as its zero." + moved
+            + (f" Method: {z['method']}." if z.get("judged") else ""), ""]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from .._systems import system_kind
 from ..discovery.explain import EQUATIONS
-from .format import location, pct
+from .format import location, pct, sensor_zero_lines
 
 
 def _g(x, fmt=".4g") -> str:
@@ -77,6 +77,7 @@ def render_explain(doc: dict, figures: dict) -> str:
          f"`{doc['command']}`.", "",
          f"{doc['data']['points']} orbits from " + ", ".join(f"`{s}`" for s in
                                                            doc["data"]["sources"]) + ".", ""]
+    L += sensor_zero_lines(doc["data"])
     L += control_line(doc.get("control"))
     L += [f"## Residual of the {doc['what']}", ""]
     L += candidates_section(ex, doc["system"])
@@ -141,6 +142,7 @@ def render_loop(doc: dict, figures: dict) -> str:
          f"`{doc['command']}`.", "",
          f"{doc['data']['points']} orbits from " + ", ".join(f"`{s}`" for s in
                                                            doc["data"]["sources"]) + ".", ""]
+    L += sensor_zero_lines(doc["data"])
     L += control_line((b.get("identification") or {}).get("control"),
                       (a.get("identification") or {}).get("control"))
     if eff:

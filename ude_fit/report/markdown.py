@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from .._systems import system_kind
 from ..analysis.keep import KeptStart
-from .format import location, pct
+from .format import location, pct, sensor_zero_lines
 
 
 def _ref(m: dict, key: str) -> str:
@@ -128,32 +128,6 @@ def _unknown_stability(d: dict) -> list[str]:
             "them.", ""]
 
 
-def _sensor_zero(d: dict) -> list[str]:
-    z = d.get("sensor_zero")
-    if not z:
-        return []
-    if not z["identified"]:
-        return [f"The files of {z['points']} point(s) do not record the sensors' zero; the "
-                f"zero used: {z['method']} (`--sensor-zero identified` identifies the rest "
-                "position from all points).", ""]
-    where = ", ".join(f"{c} {v:.5g} ± {e:.2g}" for c, v, e in
-                      zip(z["coordinates"], z["offsets"], z["std_error"]))
-    moved = ""
-    if z.get("incidence") is not None:
-        spans = ", ".join(f"{c} {s:.3g}" for c, s in zip(z["coordinates"],
-                                                         z["deflection_span"]))
-        moved = (f" With it, the offset between the rest position and the load-free one "
-                 f"(the zero-lift incidence) {z['incidence']:.4g}, whose static load moves "
-                 f"the rest position over the points' airspeeds by {spans}; each point is "
-                 "taken about its own airspeed's rest position.")
-    return [f"The files of {z['points']} point(s) do not record the sensors' zero: the rig's "
-            f"rest position was identified in the sensors' frame ({where}; SI units) with "
-            "the mechanistic model's parameters, the equation error "
-            f"{z['equation_error']:.4g} against {z['equation_error_own_means']:.4g} with "
-            "each point's own mean as its zero." + moved
-            + (f" Method: {z['method']}." if z.get("judged") else ""), ""]
-
-
 def _holding(d: dict, control: dict | None) -> list[str]:
     """The holding control's invasiveness per point (data/holding.py); with the control as
     a known input, also its force against the heave spring's (training/control.py)."""
@@ -234,7 +208,7 @@ def render(metrics: dict, figures: dict) -> str:
          f"{d['points'] - d['stable'] - d['unstable']} of unknown stability) from "
          + ", ".join(f"`{s}`" for s in d["sources"]) + ".",
          f"Largest measured amplitude {1e3 * d['max_amplitude']:.3f} mm; amplitude errors are "
-         "relative to it.", ""] + _unknown_stability(d) + _sensor_zero(d) + _holding(
+         "relative to it.", ""] + _unknown_stability(d) + sensor_zero_lines(d) + _holding(
             d, mech.get("identification", {}).get("control")) + [
          "## Models side by side", "",
          f"UDE: {metrics['approximator'].upper()} correction, training `{metrics['training']}`, "
