@@ -22,7 +22,7 @@ from ude_fit.data import load
 from ude_fit.fitting import prepare
 from ude_fit.mechanistic_stage import identify_mechanistic, with_chosen_zero
 from ude_fit.training.options import FitOptions
-from ude_fit.training.sensor_zero import with_sensor_zero
+from ude_fit.training.sensor_zero import ZeroJudgement, with_sensor_zero
 
 PHYSICS = ("k_alpha=70", "k_h=3600", "c_h=10")      # the benchmark's "stiff" configuration
 
@@ -95,8 +95,12 @@ def test_the_default_takes_the_identified_zero_where_the_model_meets_the_points_
     chosen = with_chosen_zero(ds, FitOptions(system="flutter"))
     z = chosen.sensor_zero
     assert z.identified and not chosen.zero_unknown().any()
-    assert z.judged["identified"]["missed"] == 0 < z.judged["own-means"]["missed"]
+    assert z.judged["identified"].missed == 0 < z.judged["own-means"].missed
     assert "chosen (auto)" in z.method and "better" in z.method
+    assert z.to_json()["judged"]["identified"] == {"missed": 0,
+                                                    "branch_rms": z.judged["identified"].branch_rms}
+    with pytest.raises(ValueError, match="count of points"):
+        ZeroJudgement(-1, None)
     identified = with_sensor_zero(ds, zero="identified")
     assert all(np.array_equal(a.coeffs, b.coeffs) for a, b in zip(chosen, identified))
     # a zero chosen once is not chosen again (the pipeline's loop sees the fit's)

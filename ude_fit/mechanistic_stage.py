@@ -21,7 +21,7 @@ from .training.control import (ControlChoice, ControlInput, against_heave_stiffn
                                control_input, with_control)
 from .training.identify import INPUT_GAIN, TrainingData, augment, identify, training_data
 from .training.options import FitOptions
-from .training.sensor_zero import AUTO, with_sensor_zero
+from .training.sensor_zero import AUTO, ZeroJudgement, with_sensor_zero
 
 
 def with_chosen_zero(ds: OrbitDataset, opts: FitOptions) -> OrbitDataset:
@@ -48,12 +48,9 @@ def with_chosen_zero(ds: OrbitDataset, opts: FitOptions) -> OrbitDataset:
     own = with_sensor_zero(ds, geometry, "own-means")
     judged = {"own-means": _mechanistic_diagram(own, opts),
               "identified": _mechanistic_diagram(identified, opts)}
-    rank = lambda j: (j["missed"], np.inf if j["branch_rms"] is None else j["branch_rms"])
-    better = rank(judged["identified"]) < rank(judged["own-means"])
+    better = judged["identified"].rank() < judged["own-means"].rank()
     chosen = identified if better else own
-    said = {k: f"{j['missed']} of {len(ds)} points missed" + (
-        "" if j["branch_rms"] is None else f", branch RMS {100 * j['branch_rms']:.3g} %")
-        for k, j in judged.items()}
+    said = {k: j.describe(len(ds)) for k, j in judged.items()}
     method = (f"{chosen.sensor_zero.method}; chosen (auto) because the mechanistic model "
               f"identified with the identified zero meets the measured diagram "
               f"{'better' if better else 'no better'} ({said['identified']}) than with each "
@@ -62,7 +59,7 @@ def with_chosen_zero(ds: OrbitDataset, opts: FitOptions) -> OrbitDataset:
         chosen.sensor_zero, judged=judged, method=method))
 
 
-def _mechanistic_diagram(ds: OrbitDataset, opts: FitOptions) -> dict:
+def _mechanistic_diagram(ds: OrbitDataset, opts: FitOptions) -> ZeroJudgement:
     """The fit's mechanistic model identified on ``ds`` (equation error) and its diagram
     against the points: how many it misses and its branch error."""
     data = training_data(ds, n=opts.samples)
@@ -70,7 +67,7 @@ def _mechanistic_diagram(ds: OrbitDataset, opts: FitOptions) -> dict:
     data = augment(data, mech)
     _, m = _evaluate(UDE(mech), ds, diagram_ranges(ds), np.asarray(data.y_scale),
                      estimate_from_data(ds), "estimated from the measured points")
-    return {"missed": m.summary.missed, "branch_rms": m.summary.branch_rms}
+    return ZeroJudgement(m.summary.missed, m.summary.branch_rms)
 
 
 def known_geometry(given: MechanisticParameters | None) -> dict | None:

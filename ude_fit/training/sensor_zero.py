@@ -24,9 +24,9 @@ equation error by 2 % and the default fit's adequate starts from 15, 13, 15 to 1
 on seeds 0-2; on simulated wind-tunnel files of three held-out configurations, whose points
 it meets with the identified zero, it lifts them from 2, 4 and 7 to 16, 16 and 15 of 16
 (docs/experiments.md, 2026-12-06/07). So by default (``auto``,
-:func:`ude_fit.mechanistic_stage.with_chosen_zero`) the fit takes the identified zero only where the
-mechanistic model identified with it reproduces the measured diagram better than with
-each point's own mean.
+:func:`ude_fit.mechanistic_stage.with_chosen_zero`) the fit takes the identified zero
+only where the mechanistic model identified with it reproduces the measured diagram better
+than with each point's own mean.
 """
 
 from __future__ import annotations
@@ -52,6 +52,34 @@ INCIDENCE = "incidence"   # the load-free offset's name among the regression's u
 
 
 @dataclasses.dataclass(frozen=True)
+class ZeroJudgement:
+    """The mechanistic model identified about one candidate zero, judged by its diagram
+    against the measured points: how many it misses and its branch error (None where it
+    meets none). The ``auto`` choice takes the candidate that ranks lower."""
+    missed: int
+    branch_rms: float | None
+
+    def __post_init__(self):
+        if isinstance(self.missed, bool) or not isinstance(self.missed, (int, np.integer)) \
+                or self.missed < 0:
+            raise ValueError(f"missed must be a count of points, not {self.missed!r}")
+        b = self.branch_rms
+        if b is not None and not (math.isfinite(b) and b >= 0):
+            raise ValueError(f"branch_rms must be None or a non-negative number, not {b!r}")
+
+    def rank(self) -> tuple:
+        """Fewer points missed first, then the smaller branch error."""
+        return (self.missed, math.inf if self.branch_rms is None else self.branch_rms)
+
+    def describe(self, points: int) -> str:
+        return f"{self.missed} of {points} points missed" + (
+            "" if self.branch_rms is None else f", branch RMS {100 * self.branch_rms:.3g} %")
+
+    def to_json(self) -> dict:
+        return {"missed": int(self.missed), "branch_rms": self.branch_rms}
+
+
+@dataclasses.dataclass(frozen=True)
 class SensorZero:
     """The zero the orbits were put about, per coordinate, in the sensors' frame (the
     loaded means), and how well the mechanistic model's equations hold with it."""
@@ -73,9 +101,9 @@ class SensorZero:
     deflection_span: tuple[float, ...]
     method: str
     # where the zero was chosen between each point's own mean and the identified one
-    # (``auto``): the mechanistic model's diagram with each, by the choice's name
-    # ({"missed": points missed, "branch_rms": its error or None}); None otherwise
-    judged: dict | None = None
+    # (``auto``): the mechanistic model's diagram with each, by the choice's name; None
+    # otherwise
+    judged: dict[str, ZeroJudgement] | None = None
 
     def to_json(self) -> dict:
         finite = lambda xs: [x if math.isfinite(x) else None for x in xs]
@@ -85,7 +113,8 @@ class SensorZero:
                 "equation_error_own_means": self.error_own_means,
                 "equation_error": self.error, "incidence": self.incidence,
                 "deflection_span": list(self.deflection_span), "method": self.method,
-                "judged": self.judged}
+                "judged": (None if self.judged is None
+                           else {k: j.to_json() for k, j in self.judged.items()})}
 
 
 def _about(ds: OrbitDataset, unknown: np.ndarray, means: np.ndarray,
