@@ -18,7 +18,12 @@ mass and nonlinearity (each has one subcritical Hopf point and one fold), not fr
 fit's results; ``--physics`` runs any other.
 
     python3 benchmarks/unseen_configuration_benchmark.py [--configs stiff,narrow,wide,soft]
-        [--physics NAME=VALUE ...] [--sigma S] [--seeds 0] [--starts N] [-- fit options]
+        [--physics NAME=VALUE ...] [--sigma S] [--seeds 0] [--starts N] [--loop]
+        [-- fit options]
+
+``--loop`` runs ``ude-fit loop FOLDER --system flutter`` instead (the discovery loop, the
+pipeline's second part): the effects it adds, and its mechanistic and refined models'
+branch error (missed points counted), missed points, Hopf and fold against the truth.
 
 Options after ``--`` go to every fit unchanged (e.g. ``-- --collocation-series free`` to
 set a plan beside the default's); the JSON records them.
@@ -111,6 +116,39 @@ def run_one(physics: tuple, sigma: float, seed: int, starts: int | None, work: s
     return result
 
 
+def run_loop(physics: tuple, sigma: float, seed: int, work: str, extra: tuple = ()) -> dict:
+    """``ude-fit loop FOLDER --system flutter`` on the configuration's files, as a
+    researcher types it: the effects it adds, and its mechanistic model (before) and refined
+    model (after) against the configured rig's truth, with the sensors' zero it chose."""
+    folder = os.path.join(work, "points")
+    truth = write_lee_campaign(folder, physics, sigma=sigma, seed=seed)
+    out = os.path.join(work, "loop")
+    cmd = [sys.executable, "-m", "ude_fit.cli", "loop", folder, "--system", "flutter",
+           "--seed", str(seed), *extra, "--out", out, "--quiet"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    result = {"physics": list(physics), "sigma": sigma, "seed": seed, "options": list(extra),
+              "truth": {"hopf": truth["hopf"], "fold": truth["fold"]},
+              "seconds": round(time.perf_counter() - t0, 1), "exit": proc.returncode}
+    if proc.returncode != 0:
+        result["error"] = (proc.stderr.strip().splitlines() or ["(no message)"])[-1]
+        return result
+    with open(os.path.join(out, "metrics.json")) as fh:
+        m = json.load(fh)
+    zero = m["data"].get("sensor_zero") or {}
+
+    def figures(model: dict) -> dict:
+        return {**_figures(model, truth),
+                "branch_rms_with_missed": model.get("branch_rms_with_missed")}
+
+    result.update({"points": m["data"]["points"],
+                   "zero": {"identified": zero.get("identified"),
+                            "judged": zero.get("judged")},
+                   "added": [a["key"] for a in m["added"]],
+                   "before": figures(m["before"]), "after": figures(m["after"])})
+    return result
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--configs", default=",".join(CONFIGURATIONS),
@@ -123,6 +161,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
     ap.add_argument("--starts", type=int, default=None,
                     help="the fit's starts (default: the fit's own default)")
+    ap.add_argument("--loop", action="store_true",
+                    help="run the discovery loop (ude-fit loop) instead of the fit")
     argv = sys.argv[1:] if argv is None else list(argv)
     extra = tuple(argv[argv.index("--") + 1:]) if "--" in argv else ()
     args = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
@@ -139,10 +179,12 @@ def main(argv=None) -> int:
             with tempfile.TemporaryDirectory() as work:
                 sigma = (args.sigma if args.sigma is not None
                          else CONFIGURATION_SIGMA.get(name, DEFAULT_SIGMA))
-                runs.append({"config": name, **run_one(physics, sigma, seed,
-                                                       args.starts, work, extra)})
+                run = (run_loop(physics, sigma, seed, work, extra) if args.loop
+                       else run_one(physics, sigma, seed, args.starts, work, extra))
+                runs.append({"config": name, **run})
             print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
-    print(json.dumps({"benchmark": "unseen_configuration", "runs": runs}, indent=1))
+    print(json.dumps({"benchmark": "unseen_configuration",
+                      "command": "loop" if args.loop else "fit", "runs": runs}, indent=1))
     return 0
 
 
