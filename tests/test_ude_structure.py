@@ -1,7 +1,7 @@
 """ude_fit's own shape (cycles and module sizes of all three packages: test_structure.py):
 its layers import only downwards (data -> models -> training -> analysis -> guide rounds ->
-mechanistic stage -> fitting -> discovery -> report -> pipeline -> cli), importing it changes no global JAX
-setting, and it imports neither the rig nor the controller."""
+mechanistic stage -> fitting -> discovery -> report -> pipeline -> cli), importing it changes
+no global JAX setting, and it imports neither the rig nor the controller."""
 
 from __future__ import annotations
 

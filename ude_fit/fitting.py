@@ -42,7 +42,7 @@ from .data.estimates import (data_scatter, estimate_from_data, parameter_scatter
 from .data.one_fold import fit_one_fold
 from .data.orbit import DataError, OrbitDataset
 from .guide_rounds import GuideRepair, GuideRounds
-from .mechanistic_stage import _control_record, mechanistic_stage, with_chosen_zero
+from .mechanistic_stage import control_record, mechanistic_stage, with_chosen_zero
 from .models.ude import UDE
 from .training.gp import fit_gp
 from .training.control import control_input, with_control
@@ -350,7 +350,7 @@ def fit(ds: OrbitDataset, opts: FitOptions, *, reference: dict | None = None,
                                 "mechanistic model needs its gain (--control-gain)")
             data = with_control(data, ds, ctrl.gain)
             ident = {"method": "given", "parameters": mechanistic.mech.parameters(),
-                     "std_error": {}, "control": _control_record(ds, ctrl, mechanistic.mech)}
+                     "std_error": {}, "control": control_record(ds, ctrl, mechanistic.mech)}
         return _fit_on(mechanistic, ds, data, opts, ranges, ref, ref_source, say, t_start,
                        ident, verbose=progress is not None)
     say(event="stage", stage="mechanistic identification")

@@ -130,16 +130,16 @@ def identify_with_control(ds: OrbitDataset, data: TrainingData, choice: ControlC
         ident.get("bootstrap_std", {}).pop(INPUT_GAIN, None)
         ident["sources"].pop(INPUT_GAIN, None)
         ctrl = ControlInput(ctrl.unit, float(gain), ctrl.source)
-        ident["control"] = {**_control_record(ds, ctrl, mech), "gain_std_error": se}
+        ident["control"] = {**control_record(ds, ctrl, mech), "gain_std_error": se}
     else:
         mech, ident = identify_mechanistic(with_control(data, ds, ctrl.gain), choice.system,
                                            given=given, effects=effects,
                                            bootstrap=bootstrap, seed=seed)
-        ident["control"] = _control_record(ds, ctrl, mech)
+        ident["control"] = control_record(ds, ctrl, mech)
     return with_control(data, ds, ctrl.gain), mech, ident
 
 
-def _control_record(ds: OrbitDataset, ctrl: ControlInput, mech) -> dict:
+def control_record(ds: OrbitDataset, ctrl: ControlInput, mech) -> dict:
     """What metrics.json keeps of a fit's control input: unit, gain and its source, and
     each point's control force against ``mech``'s heave spring."""
     return {**ctrl.to_json(), "against_heave_stiffness": against_heave_stiffness(
