@@ -143,6 +143,22 @@ def test_the_loop_starts_from_the_zero_a_fit_would_choose_and_names_the_wake(wri
     assert own["before"]["missed"] > 0 and own["after"]["missed"] > 0
 
 
+def test_the_librarys_refine_starts_from_the_zero_a_fit_would_choose(written):
+    """Called directly on the loaded files, ``refine`` starts from the rest position the fit
+    and the command line choose (here the identified zero: its mechanistic model meets
+    every point), not from each point's own mean, which the user can still ask for by
+    choosing that zero first."""
+    from ude_fit.discovery.loop import refine
+    folder, _ = written
+    ds = load(folder, "flutter")
+    added = [("heave_unsteady_aero", None)]
+    chosen = refine(ds, "flutter", added, bootstrap=10)
+    assert chosen.before.metrics.summary.missed == 0
+    assert chosen.after.metrics.summary.missed == 0
+    own = refine(with_sensor_zero(ds, zero="own-means"), "flutter", added, bootstrap=10)
+    assert own.before.metrics.summary.missed > 0
+
+
 def test_a_configuration_without_a_campaigns_two_orbits_is_refused(tmp_path):
     # the large orbits of this one are unstable as well: no CBC campaign of the lab's
     # layout (a stable and an unstable orbit at each airspeed) comes from it

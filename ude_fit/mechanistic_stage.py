@@ -36,12 +36,13 @@ def with_chosen_zero(ds: OrbitDataset, opts: FitOptions) -> OrbitDataset:
     configurations), one that misses them with either zero has not (lee2020/model2, where
     the identified zero lowers the equation error by 2 % and changes the quadratic pitch
     stiffness ninefold). The record keeps both diagrams' figures."""
+    if opts.sensor_zero == AUTO and (not ds.zero_unknown().any()
+                                     or ds.sensor_zero is not None):
+        return ds                       # nothing to choose, or chosen already
     require_float64("choosing the sensors' zero")
     geometry = known_geometry(opts.mechanistic_parameters)
     if opts.sensor_zero != AUTO:
         return with_sensor_zero(ds, geometry, opts.sensor_zero)
-    if not ds.zero_unknown().any() or ds.sensor_zero is not None:
-        return ds
     identified = with_sensor_zero(ds, geometry, "identified")
     if not identified.sensor_zero.identified:
         return identified           # its record says why each own mean was kept

@@ -42,13 +42,14 @@ from ..analysis.diagram import _evaluate
 from ..analysis.metrics_type import BranchSummary, ModelMetrics
 from ..data.orbit import OrbitDataset
 from ..fitting import fit, prepare
-from ..mechanistic_stage import identify_mechanistic, identify_with_control
+from ..mechanistic_stage import identify_mechanistic, identify_with_control, with_chosen_zero
 from ..models.forms import state_parts
 from ..models.library import LIBRARY, STRUCTURAL, effect, states_of
 from ..models.refined import describe
 from ..models.ude import UDE
 from ..training.control import ControlChoice
 from ..training.identify import TrainingData, augment, identify
+from ..training.options import FitOptions
 from .describe import VERY_STRONG, describe as describe_shapes, effect_fields
 from .explain import choose_shape, explain
 from .locate import Location, locate
@@ -183,6 +184,17 @@ def _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap, control)
                   control)
 
 
+def _about_chosen_zero(ds: OrbitDataset, system: str, control: ControlChoice | None,
+                       samples: int) -> OrbitDataset:
+    """``ds`` about the sensors' zero a fit with the same control would choose, where no
+    file recorded it and nobody has chosen it yet (a no-op otherwise): the loop then starts
+    from the rest position the fit and the command line start from, also when the library
+    is called directly on loaded wind-tunnel files."""
+    return with_chosen_zero(ds, FitOptions(
+        system, samples=samples, control_input=control is not None,
+        control_gain=None if control is None else control.gain))
+
+
 def refine(ds: OrbitDataset, system: str, add: list, *, reference=None, seed: int = 0,
            bootstrap: int = 200, samples: int = 32, progress=None,
            control: ControlChoice | None = None) -> LoopResult:
@@ -191,6 +203,7 @@ def refine(ds: OrbitDataset, system: str, add: list, *, reference=None, seed: in
     ``control``, the recorded control as a known input: see the module's docstring)."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
+    ds = _about_chosen_zero(ds, system, control, samples)
     ds, data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
     say(event="stage", stage="mechanistic model")
     before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap, control)
@@ -227,6 +240,7 @@ def close_loop(ds: OrbitDataset, system: str, *, max_effects: int = 3,
     ``control`` the recorded control is a known input (the module's docstring)."""
     say = progress or (lambda **kw: None)
     t0 = time.perf_counter()
+    ds = _about_chosen_zero(ds, system, control, samples)
     ds, data, ranges, ref, ref_source = prepare(ds, system, reference, samples)
     say(event="stage", stage="mechanistic model")
     before = _before(ds, data, system, ranges, ref, ref_source, seed, bootstrap, control)
