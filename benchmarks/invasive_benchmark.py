@@ -11,6 +11,11 @@ Every run also says how each campaign was held ("holding", ude_fit/data/holding.
 points called invasive, and the control's first harmonic (N) at the median and the largest;
 with noise the "non-invasive" campaign's control is not zero either (docs/experiments.md,
 fifty-third session).
+``--both-sides`` also writes the invasive campaign with every target on the other side of
+its orbit and fits the two together (each airspeed and branch held twice), with the control
+as an input ("both+control") and without ("both"): one held orbit per airspeed and branch
+cannot tell the open-loop orbit from how far the control moved it, two either side can
+(docs/experiments.md, sixty-fourth session).
 ``--add`` adds library effects to every fit's mechanistic model (as ``ude-fit fit --add``).
 ``--rig-physics`` and ``--rig-effect`` start the rig in another configuration and with
 undeclared physics (as ``rig-sim serve --physics``/``--effect``); its truth (the Hopf and
@@ -26,7 +31,7 @@ model, as ``ude-fit loop --ude`` does, and judges its kept UDE the same way
 
     python3 benchmarks/invasive_benchmark.py [--loose 0.05,0.15] [--sigmas 0,0.02]
         [--seeds 0] [--starts 2] [--add EFFECT ...] [--rig-physics NAME=VALUE ...]
-        [--rig-effect NAME=VALUE ...] [--loop [--ude]]
+        [--rig-effect NAME=VALUE ...] [--loop [--ude] | --both-sides]
 """
 
 from __future__ import annotations
@@ -46,8 +51,8 @@ jax.config.update("jax_enable_x64", True)
 
 from rig_sim.physics.configuration import configured_params  # noqa: E402
 from rig_sim.physics.effects import parse_effects as rig_effect_vector  # noqa: E402
-from tests.invasive_cases import (FITS, against_truth, fit_cases,  # noqa: E402
-                                  loop_cases, truth_reference, write_cases)
+from tests.invasive_cases import (BOTH_SIDES_FITS, FITS, against_truth,  # noqa: E402
+                                  fit_cases, loop_cases, truth_reference, write_cases)
 from ude_fit.models.library import parse_effects  # noqa: E402
 
 
@@ -65,7 +70,10 @@ def _holding(folder) -> dict:
     mismatch (|T1 - X1| / |X1|)."""
     from ude_fit.data import load
     out = {}
-    for path in dict.fromkeys(path for _, path, _ in FITS):     # each campaign once
+    campaigns = [p for _, paths, _ in FITS + BOTH_SIDES_FITS for p in paths]
+    for path in dict.fromkeys(campaigns):                       # each campaign once
+        if not os.path.exists(os.path.join(folder, path)):
+            continue                                           # flipped.h5 without --both-sides
         name = os.path.splitext(path)[0]
         hs = [o.holding for o in load([os.path.join(folder, path)], "flutter")
               if o.holding is not None]
@@ -151,6 +159,10 @@ def main(argv=None) -> int:
     ap.add_argument("--ude", action="store_true",
                     help="with --loop: also the default UDE fit (--starts starts) on each "
                     "loop's refined model, as ude-fit loop --ude, and the criterion at it")
+    ap.add_argument("--both-sides", action="store_true",
+                    help="also hold the invasive campaign with every target on the other "
+                    "side of its orbit, and fit both campaigns together, with the control as "
+                    "an input (\"both+control\") and without (\"both\")")
     ap.add_argument("--add", nargs="+", default=[], metavar="EFFECT[=SHAPE]",
                     help="library effects added to every fit's mechanistic model (as "
                     "ude-fit fit --add), e.g. heave_unsteady_aero pitch_unsteady_aero")
@@ -161,6 +173,8 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if a.ude and not a.loop:
         ap.error("--ude applies with --loop only (without it every fit is a UDE fit)")
+    if a.both_sides and a.loop:
+        ap.error("--both-sides applies to the fit only, not with --loop")
     effects = parse_effects("flutter", a.add)
     try:
         configured_params("flutter", a.rig_physics)
@@ -178,7 +192,8 @@ def main(argv=None) -> int:
                                             a.starts if a.ude else 0)
                     else:
                         cases = fit_cases(d, loose, sigma=sigma, seed=seed, starts=a.starts,
-                                          effects=effects, rig=rig)
+                                          effects=effects, rig=rig,
+                                          both_sides=a.both_sides)
                         figures = {name: _figures(*c) for name, c in cases.items()}
                     figures["holding"] = _holding(d)
                 # "looseness", not "loose": that is the name of a fit among the figures

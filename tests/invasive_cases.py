@@ -16,9 +16,13 @@ from tests.ude_fixtures import write_truth_campaign
 
 AIRSPEEDS = (19.0, 20.0, 21.0, 22.0, 23.0, 24.0, 25.5)
 TRUTH_REFERENCE = {"hopf": 23.95, "fold": 16.82}      # the rig's own (docs/physics.md)
-# the three fits: (name, campaign, control as an input)
-FITS = (("held", "held.h5", False), ("loose+control", "loose.h5", True),
-        ("loose", "loose.h5", False))
+# the three fits: (name, campaigns, control as an input)
+FITS = (("held", ("held.h5",), False), ("loose+control", ("loose.h5",), True),
+        ("loose", ("loose.h5",), False))
+# with both sides (write_cases): every airspeed and branch held twice, once with the
+# invasive campaign's target and once with its sign flipped, fitted together
+BOTH_SIDES = ("loose.h5", "flipped.h5")
+BOTH_SIDES_FITS = (("both+control", BOTH_SIDES, True), ("both", BOTH_SIDES, False))
 
 
 def truth_dataset(records):
@@ -42,17 +46,19 @@ def truth_reference(rig: dict) -> dict:
 
 
 def write_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
-                rig: dict | None = None):
+                rig: dict | None = None, both_sides: bool = False):
     """Write the non-invasive campaign (held.h5) and the invasive one (loose.h5) under
     ``folder`` on the rig started with ``rig`` ({"effects": ..., "physics": ...}, as
-    write_truth_campaign takes them; the design rig by default); returns the truth's
-    open-loop orbits as a dataset."""
+    write_truth_campaign takes them; the design rig by default), with ``both_sides`` also
+    the invasive one with every target on the other side of its orbit (flipped.h5);
+    returns the truth's open-loop orbits as a dataset."""
     folder = Path(folder)
     rig = rig or {}
     truth = write_truth_campaign(folder / "held.h5", "flutter", airspeeds=AIRSPEEDS,
                                  sigma=sigma, seed=seed, record_s=2.0, **rig)
-    write_truth_campaign(folder / "loose.h5", "flutter", airspeeds=AIRSPEEDS, sigma=sigma,
-                         seed=seed, record_s=2.0, invasive=loose, **rig)
+    for name, looseness in (("loose.h5", loose), ("flipped.h5", -loose))[:1 + both_sides]:
+        write_truth_campaign(folder / name, "flutter", airspeeds=AIRSPEEDS, sigma=sigma,
+                             seed=seed, record_s=2.0, invasive=looseness, **rig)
     return truth_dataset(truth)
 
 
@@ -79,8 +85,8 @@ def mechanistic_cases(folder: Path, loose: float, effects: tuple = (), *,
 
     truth_ds = write_cases(folder, loose, sigma=sigma, seed=seed)
     out = {}
-    for name, path, control in FITS:
-        ds = load([Path(folder) / path], "flutter")
+    for name, paths, control in FITS:
+        ds = load([Path(folder) / p for p in paths], "flutter")
         opts = FitOptions("flutter", control_input=control, mechanistic_effects=effects)
         _, data, ranges, _, _ = prepare(ds, "flutter", TRUTH_REFERENCE, opts.samples)
         data, mech, ident = mechanistic_stage(ds, data, opts)
@@ -92,23 +98,27 @@ def mechanistic_cases(folder: Path, loose: float, effects: tuple = (), *,
 
 def fit_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
               starts: int = 1, names=tuple(name for name, _, _ in FITS),
-              effects: tuple = (), rig: dict | None = None) -> dict:
+              effects: tuple = (), rig: dict | None = None,
+              both_sides: bool = False) -> dict:
     """{name: (FitResult, the kept UDE's ModelMetrics against the truth, fit seconds, the
     mechanistic model's ModelMetrics against the truth)} for the fits of :data:`FITS`
-    called ``names`` on campaigns written under ``folder``, with the library ``effects``
-    added to the mechanistic model (as --add), on the rig started with ``rig`` (as
-    :func:`write_cases` takes it)."""
+    called ``names`` (with ``both_sides`` those of :data:`BOTH_SIDES_FITS` too) on
+    campaigns written under ``folder``, with the library ``effects`` added to the
+    mechanistic model (as --add), on the rig started with ``rig`` (as :func:`write_cases`
+    takes it)."""
     from ude_fit.data import load
     from ude_fit.fitting import fit
     from ude_fit.training.options import FitOptions
 
     folder = Path(folder)
-    truth_ds = write_cases(folder, loose, sigma=sigma, seed=seed, rig=rig)
+    truth_ds = write_cases(folder, loose, sigma=sigma, seed=seed, rig=rig,
+                           both_sides=both_sides)
     reference = truth_reference(rig or {})
+    fits = [f for f in FITS if f[0] in names] + list(BOTH_SIDES_FITS if both_sides else ())
     out = {}
-    for name, path, control in (f for f in FITS if f[0] in names):
+    for name, paths, control in fits:
         t0 = time.perf_counter()
-        r = fit(load([folder / path], "flutter"),
+        r = fit(load([folder / p for p in paths], "flutter"),
                 FitOptions("flutter", starts=starts, seed=seed, control_input=control,
                            mechanistic_effects=effects),
                 reference=reference)
