@@ -436,7 +436,7 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
         s.adequate = a
     kept_by = choose_kept(starts, ds.parameter_spans())
     best = next((s for s in starts if s.start == kept_by.start), None)
-    data_record = {"points": len(ds), "sources": list(ds.sources),
+    data_record = {**ds.record(),
                    "stable": int(sum(1 for o in ds if o.stable is True)),
                    "unstable": int(sum(1 for o in ds if o.stable is False)),
                    "max_amplitude": float(ds.amplitudes().max()),
@@ -446,8 +446,6 @@ def _fit_on(mech_model, ds, data, opts, ranges, ref, ref_source, say, t_start,
                    "parameter_scatter": (parameter_scatter(ds) if ds.kind.autonomous
                                          else None),
                    "unknown_stability": ds.unknown_stability(),
-                   "sensor_zero": (None if ds.sensor_zero is None
-                                   else ds.sensor_zero.to_json()),
                    "point_records": ds.point_records()}
     return FitResult(options=opts, mechanistic=mech_model,
                      ude=None if best is None else best.model, identification=ident,

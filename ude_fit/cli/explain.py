@@ -9,7 +9,7 @@ from ..discovery.explain import explain
 from ..discovery.routes import learnt_correction
 from ..mechanistic_stage import identify_with_control
 from ..model_file import load_model
-from ..report.files import data_record, provenance, write_json, write_text
+from ..report.files import provenance, write_json, write_text
 from ..report.loop_markdown import candidates_section, render_explain
 from ..report.plots import parameter_label, plot_residuals
 from ..training.identify import training_data
@@ -38,7 +38,7 @@ def run(args, argv) -> int:
         control = ident["control"]
     ex = explain(data, args.system, seed=args.seed, bootstrap=args.bootstrap)
     doc = {**provenance(command_line(argv), args.data), "command_name": "explain",
-           "data": data_record(ds),
+           "data": ds.record(),
            "options": {k: v for k, v in vars(args).items()
                        if k not in ("data", "out", "quiet", "command")},
            "system": args.system,

@@ -228,6 +228,13 @@ class OrbitDataset:
         """The sources of the points whose stability is unknown."""
         return [o.source for o in self.orbits if o.stable is None]
 
+    def record(self) -> dict:
+        """What every document of a command says of the points it read: how many, from
+        where, and the sensors' zero they were taken about where their files do not record
+        it (None where every file does)."""
+        return {"points": len(self), "sources": list(self.sources),
+                "sensor_zero": None if self.sensor_zero is None else self.sensor_zero.to_json()}
+
     def point_records(self) -> list[dict]:
         """Per point, what metrics.json records of its data: where it came from, its
         stability and that label's origin, and its holding control's figures."""

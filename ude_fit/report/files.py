@@ -44,10 +44,3 @@ def provenance(command: str, paths) -> dict:
     return {"version": _version(),
             "written": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "command": command, "inputs": input_records(paths)}
-
-
-def data_record(ds) -> dict:
-    """What a discovery command's documents say of the points it read: how many, from
-    where, and the sensors' zero they were taken about where their files do not record it."""
-    return {"points": len(ds), "sources": list(ds.sources),
-            "sensor_zero": None if ds.sensor_zero is None else ds.sensor_zero.to_json()}

@@ -8,7 +8,7 @@ import os
 
 from ..discovery.loop import metrics_document
 from ..model_file import save_model
-from .files import data_record, write_json, write_text
+from .files import write_json, write_text
 from .loop_markdown import render_loop
 from .plots import parameter_label, plot_diagram, plot_residuals, plot_shapes
 
@@ -19,7 +19,7 @@ def write_loop(out, ds, result, provenance: dict, *, name: str, options: dict) -
     os.makedirs(out, exist_ok=True)
     system = ds.system
     doc = {**provenance, "command_name": name,
-           "data": data_record(ds), "options": options,
+           "data": ds.record(), "options": options,
            **metrics_document(result)}
     figures = {}
     if result.explanations:
