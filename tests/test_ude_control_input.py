@@ -248,6 +248,34 @@ def test_the_control_is_reported_against_the_heave_spring(fits):
     assert "against the heave spring |" in text
 
 
+def test_the_fit_says_where_the_invasive_points_lie_and_that_a_branch_is_one_sided(fits):
+    """The invasive campaign's targets alternate 5 % above and below point by point, each
+    airspeed's unstable point first and the top two airspeeds stable only: every unstable
+    point is held above its open-loop orbit (6-16 % above the truth's amplitude), the
+    stable ones below (about 3 %) but the one at 24 m/s, above. Against the kept UDE's
+    open-loop orbits (measured: 2-5 % above the truth's on the unstable branch, within
+    0.7 % on the stable one) every invasive point keeps its side, so the fit records the
+    unstable branch as held on one side, not the stable one, and the report tells the
+    user to hold two targets per airspeed. A fit without the control records nothing of
+    this."""
+    from ude_fit.analysis.controlled import HeldSides
+    from ude_fit.report.markdown import render
+    r = fits["loose+control"][0]
+    doc = r.to_json()
+    labels = [p["stable"] for p in doc["data"]["point_records"]]
+    sides = doc["ude"]["controlled"]["held_sides"]
+    assert sides == {"above": {"stable": 1, "unstable": labels.count(False)},
+                     "below": {"stable": labels.count(True) - 1, "unstable": 0},
+                     "one_sided": ["unstable"]}
+    text = render({**doc, "version": "test", "written": "now", "command": "fit",
+                   "options": r.options.to_json()}, {})
+    assert "hold each airspeed at two targets" in text
+    assert "held_sides" not in (fits["loose"][0].to_json()["ude"].get("controlled") or {})
+    assert HeldSides({"stable": 2, "unstable": 1}, {"stable": 1, "unstable": 0}).one_sided == ()
+    with pytest.raises(ValueError, match="held sides"):
+        HeldSides({"stable": -1, "unstable": 0}, {"stable": 0, "unstable": 0})
+
+
 def test_the_spring_ratio_of_a_lee2020_record(tmp_path):
     """A lee2020-format record with a 4 mV control at the orbit's frequency: the ratio is
     the gain times 4 mV over k_h times the heave's first-harmonic amplitude, exactly (the

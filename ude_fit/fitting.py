@@ -130,8 +130,11 @@ def _controlled_record(m: ModelMetrics, controlled: ControlledOrbits, *,
     if not per_point:
         c = {k: v for k, v in c.items() if k not in ("errors", "amplitudes")}
     j = judged(m, controlled).summary
-    return {**c, "judged": {"branch_rms": j.branch_rms, "branch_max": j.branch_max,
-                            "missed": j.missed}}
+    out = {**c, "judged": {"branch_rms": j.branch_rms, "branch_max": j.branch_max,
+                           "missed": j.missed}}
+    if per_point and controlled.invasive:
+        out["held_sides"] = controlled.held_sides(m).to_json()
+    return out
 
 
 @dataclass

@@ -54,12 +54,66 @@ CLOSING_STEPS = 10          # constrained Gauss-Newton steps (quadratic once nea
 CLOSED = 1e-6
 
 
+BRANCHES = ("stable", "unstable")
+
+
+@dataclass(frozen=True)
+class HeldSides:
+    """Where the points held invasively lie against a model's open-loop orbits at their
+    airspeeds, per branch ("stable", "unstable"): how many above, how many below (a point
+    the diagram misses, or of unknown stability, is not counted).
+
+    A held orbit fixes the open-loop orbit only together with how far the control moved
+    it. Where a branch's points were all held on one side, nothing in the data tells the
+    two apart and the model's form splits them: on the invasive benchmark's campaign (every
+    unstable point held above its orbit) the fit left about a third of each displacement
+    in its open-loop orbit, and the same points held on both sides removed it
+    (docs/experiments.md, sixty-fourth session)."""
+    above: dict[str, int]
+    below: dict[str, int]
+
+    def __post_init__(self):
+        for side in (self.above, self.below):
+            if set(side) != set(BRANCHES) or any(
+                    isinstance(n, bool) or not isinstance(n, int) or n < 0
+                    for n in side.values()):
+                raise ValueError(f"held sides must count {BRANCHES} points, not {side!r}")
+
+    @property
+    def one_sided(self) -> tuple[str, ...]:
+        """The branches with at least two points counted, all on one side."""
+        return tuple(b for b in BRANCHES if self.above[b] + self.below[b] >= 2
+                     and min(self.above[b], self.below[b]) == 0)
+
+    def to_json(self) -> dict:
+        return {"above": dict(self.above), "below": dict(self.below),
+                "one_sided": list(self.one_sided)}
+
+
 @dataclass(frozen=True)
 class ControlledOrbits:
     """Every point's orbit under its recorded control against the measured one: per point
     the orbit's heave amplitude and its error over the largest measured amplitude (missed
-    where it does not close), and their summary."""
+    where it does not close), and their summary; ``invasive`` per point, whether its
+    holding control was (:mod:`~ude_fit.data.holding`)."""
     errors: BranchErrors
+    invasive: tuple[bool, ...] = ()
+
+    def __post_init__(self):
+        object.__setattr__(self, "invasive", tuple(bool(x) for x in self.invasive))
+        if self.invasive and len(self.invasive) != len(self.points):
+            raise ValueError(f"{len(self.invasive)} invasive flags for "
+                             f"{len(self.points)} points")
+
+    def held_sides(self, open_loop: ModelMetrics) -> HeldSides:
+        """Where the invasive points lie against the same model's open-loop diagram
+        (``open_loop``: its metrics at these points)."""
+        above, below = dict.fromkeys(BRANCHES, 0), dict.fromkeys(BRANCHES, 0)
+        for p, invasive in zip(open_loop.errors.points, self.invasive, strict=True):
+            if invasive and not p.missed and p.stable is not None:
+                side = above if p.measured > p.model else below
+                side["stable" if p.stable else "unstable"] += 1
+        return HeldSides(above, below)
 
     @property
     def points(self) -> tuple[PointError, ...]:
@@ -186,4 +240,6 @@ def controlled_orbits(model, data: TrainingData, ds: OrbitDataset) -> Controlled
         amplitude = 2.0 * abs(np.sum(sim[:, 0] * phase)) / n
         points.append(PointError(**measured, model=float(amplitude),
                                  error=float(abs(amplitude - o.amplitude) / a_max)))
-    return ControlledOrbits(BranchErrors.of(points, a_max))
+    return ControlledOrbits(BranchErrors.of(points, a_max),
+                            tuple(o.holding is not None and o.holding.invasive
+                                  for o in ds.orbits))

@@ -163,6 +163,27 @@ def _holding(d: dict, control: dict | None) -> list[str]:
     return L + [""]
 
 
+def _held_sides(ude: dict | None) -> list[str]:
+    """With the control as an input: where the invasive points lie against the kept UDE's
+    open-loop orbits, and a warning for a branch held on one side only
+    (analysis/controlled.py, HeldSides)."""
+    sides = ((ude or {}).get("controlled") or {}).get("held_sides")
+    if not sides:
+        return []
+    counts = "; ".join(f"{b}: {sides['above'][b]} above, {sides['below'][b]} below"
+                       for b in ("stable", "unstable"))
+    L = [f"Invasive points against the kept UDE's open-loop orbits at their airspeeds: "
+         f"{counts}."]
+    if sides["one_sided"]:
+        L[0] += (" Every invasive point of the " + " and the ".join(sides["one_sided"])
+                 + " branch lies on one side of its open-loop orbit. One held orbit per "
+                 "airspeed fixes the open-loop orbit only together with how far the control "
+                 "moved it, so there the model's form, not the data, decides the split: "
+                 "hold each airspeed at two targets, one either side of the orbit "
+                 "(docs/fitting.md, the control as a known input).")
+    return L + [""]
+
+
 def _controlled_rows(mech: dict, ude: dict | None) -> list[str]:
     """With the control as an input: both models' orbits under the recorded control
     against the points, and the figures the adequacy judged (analysis/controlled.py)."""
@@ -209,7 +230,7 @@ def render(metrics: dict, figures: dict) -> str:
          + ", ".join(f"`{s}`" for s in d["sources"]) + ".",
          f"Largest measured amplitude {1e3 * d['max_amplitude']:.3f} mm; amplitude errors are "
          "relative to it.", ""] + _unknown_stability(d) + sensor_zero_lines(d) + _holding(
-            d, mech.get("identification", {}).get("control")) + [
+            d, mech.get("identification", {}).get("control")) + _held_sides(ude) + [
          "## Models side by side", "",
          f"UDE: {metrics['approximator'].upper()} correction, training `{metrics['training']}`, "
          f"start {ude['start'] if ude else '—'} of {metrics['starts']['requested']} kept."
