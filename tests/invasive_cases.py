@@ -144,9 +144,9 @@ def loop_cases(folder: Path, truth_ds, *, bootstrap: int = 20, seed: int = 0,
     from ude_fit.training.options import FitOptions
 
     out = {}
-    for name, path, control in FITS:
+    for name, paths, control in FITS:
         t0 = time.perf_counter()
-        ds = load([Path(folder) / path], "flutter")
+        ds = load([Path(folder) / p for p in paths], "flutter")
         res = close_loop(ds, "flutter", seed=seed, bootstrap=bootstrap, reference=reference,
                          control=ControlChoice("flutter") if control else None)
         seconds = time.perf_counter() - t0
