@@ -219,7 +219,7 @@ def test_the_fit_with_the_control_judges_its_starts_under_the_control(fits):
     assert "judged under the control: RMS, missed |" in text
     from ude_fit.cli.fit import summary
     said = summary(r, 1)
-    assert said[-1] == (f"judged under the recorded control: mechanistic "
+    assert said[1] == (f"judged under the recorded control: mechanistic "
                         f"{100 * mech['judged']['branch_rms']:.2f} % (0 missed), UDE "
                         f"{100 * c['branch_rms']:.2f} % (0 missed)"), said
     assert len(summary(fits["loose"][0], 1)) == 1
@@ -255,9 +255,9 @@ def test_the_fit_says_where_the_invasive_points_lie_and_that_a_branch_is_one_sid
     stable ones below (about 3 %) but the one at 24 m/s, above. Against the kept UDE's
     open-loop orbits (measured: 2-5 % above the truth's on the unstable branch, within
     0.7 % on the stable one) every invasive point keeps its side, so the fit records the
-    unstable branch as held on one side, not the stable one, and the report tells the
-    user to hold two targets per airspeed. A fit without the control records nothing of
-    this."""
+    unstable branch as held on one side, not the stable one, and the report and what
+    ``ude-fit fit`` prints tell the user to hold two targets per airspeed. A fit without
+    the control records nothing of this."""
     from ude_fit.analysis.controlled import HeldSides
     from ude_fit.report.markdown import render
     r = fits["loose+control"][0]
@@ -269,9 +269,13 @@ def test_the_fit_says_where_the_invasive_points_lie_and_that_a_branch_is_one_sid
                      "one_sided": ["unstable"]}
     text = render({**doc, "version": "test", "written": "now", "command": "fit",
                    "options": r.options.to_json()}, {})
-    assert "hold each airspeed at two targets" in text
+    warning = HeldSides(sides["above"], sides["below"]).warning()
+    assert "hold each airspeed at two targets" in warning and warning in text
+    from ude_fit.cli.fit import summary
+    assert summary(r, 1)[-1] == warning
     assert "held_sides" not in (fits["loose"][0].to_json()["ude"].get("controlled") or {})
-    assert HeldSides({"stable": 2, "unstable": 1}, {"stable": 1, "unstable": 0}).one_sided == ()
+    balanced = HeldSides({"stable": 2, "unstable": 1}, {"stable": 1, "unstable": 0})
+    assert balanced.one_sided == () and balanced.warning() is None
     with pytest.raises(ValueError, match="held sides"):
         HeldSides({"stable": -1, "unstable": 0}, {"stable": 0, "unstable": 0})
 

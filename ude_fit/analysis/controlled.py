@@ -85,6 +85,18 @@ class HeldSides:
         return tuple(b for b in BRANCHES if self.above[b] + self.below[b] >= 2
                      and min(self.above[b], self.below[b]) == 0)
 
+    def warning(self) -> str | None:
+        """What to tell the user where a branch was held on one side only (the report and
+        ``ude-fit fit`` say it); None where none was."""
+        if not self.one_sided:
+            return None
+        return ("Every invasive point of the " + " and the ".join(self.one_sided)
+                + " branch lies on one side of its open-loop orbit. One held orbit per "
+                "airspeed fixes the open-loop orbit only together with how far the control "
+                "moved it, so there the model's form, not the data, decides the split: "
+                "hold each airspeed at two targets, one either side of the orbit "
+                "(docs/fitting.md, the control as a known input).")
+
     def to_json(self) -> dict:
         return {"above": dict(self.above), "below": dict(self.below),
                 "one_sided": list(self.one_sided)}

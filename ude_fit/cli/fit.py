@@ -24,7 +24,8 @@ def add_parser(sub) -> None:
 def summary(res, starts: int) -> list[str]:
     """The lines the command prints about the fit ``res`` of ``starts`` starts: the branch
     errors and the adequate starts, and, with the control as an input, the figures the
-    adequacy read (each model's orbits under the recorded control)."""
+    adequacy read (each model's orbits under the recorded control) and the warning of a
+    branch whose invasive points all lie on one side of the kept UDE's orbits."""
     kept = res.kept
     lines = [f"branch RMS error: mechanistic {pct(res.mechanistic_metrics.summary.branch_rms)}, "
              f"UDE {pct(kept.metrics.summary.branch_rms) if kept else 'no model'}; adequate "
@@ -34,6 +35,10 @@ def summary(res, starts: int) -> list[str]:
         lines.append(f"judged under the recorded control: mechanistic "
                      f"{judged(res.mechanistic_judged)}, UDE "
                      + (judged(kept.judged) if kept else "no model"))
+    if kept and kept.controlled is not None and kept.controlled.invasive:
+        warning = kept.controlled.held_sides(kept.metrics).warning()
+        if warning:
+            lines.append(warning)
     return lines
 
 

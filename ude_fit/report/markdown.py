@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from .._systems import system_kind
+from ..analysis.controlled import HeldSides
 from ..analysis.keep import KeptStart
 from .format import location, pct, sensor_zero_lines
 
@@ -172,16 +173,9 @@ def _held_sides(ude: dict | None) -> list[str]:
         return []
     counts = "; ".join(f"{b}: {sides['above'][b]} above, {sides['below'][b]} below"
                        for b in ("stable", "unstable"))
-    L = [f"Invasive points against the kept UDE's open-loop orbits at their airspeeds: "
-         f"{counts}."]
-    if sides["one_sided"]:
-        L[0] += (" Every invasive point of the " + " and the ".join(sides["one_sided"])
-                 + " branch lies on one side of its open-loop orbit. One held orbit per "
-                 "airspeed fixes the open-loop orbit only together with how far the control "
-                 "moved it, so there the model's form, not the data, decides the split: "
-                 "hold each airspeed at two targets, one either side of the orbit "
-                 "(docs/fitting.md, the control as a known input).")
-    return L + [""]
+    warning = HeldSides(sides["above"], sides["below"]).warning()
+    return [f"Invasive points against the kept UDE's open-loop orbits at their airspeeds: "
+            f"{counts}." + (f" {warning}" if warning else ""), ""]
 
 
 def _controlled_rows(mech: dict, ude: dict | None) -> list[str]:
