@@ -16,6 +16,12 @@ its orbit and fits the two together (each airspeed and branch held twice), with 
 as an input ("both+control") and without ("both"): one held orbit per airspeed and branch
 cannot tell the open-loop orbit from how far the control moved it, two either side can
 (docs/experiments.md, sixty-fourth session).
+``--cbc`` runs the two campaigns with the CBC controller itself (``cbc-campaign run``, the
+flutter plan on the embedded rig in lockstep, at 19-23 m/s where it holds both branches):
+the non-invasive one at the plan's default tolerances, the invasive one with each
+``--loose`` as the plan's ``tolerance_rel`` (under noise the regression root's
+``root_se_rel``). Its points are off their orbits by what the root search left, not by a
+set fraction (tests/invasive_cases.write_cbc_cases).
 ``--add`` adds library effects to every fit's mechanistic model (as ``ude-fit fit --add``).
 ``--rig-physics`` and ``--rig-effect`` start the rig in another configuration and with
 undeclared physics (as ``rig-sim serve --physics``/``--effect``); its truth (the Hopf and
@@ -31,7 +37,7 @@ model, as ``ude-fit loop --ude`` does, and judges its kept UDE the same way
 
     python3 benchmarks/invasive_benchmark.py [--loose 0.05,0.15] [--sigmas 0,0.02]
         [--seeds 0] [--starts 2] [--add EFFECT ...] [--rig-physics NAME=VALUE ...]
-        [--rig-effect NAME=VALUE ...] [--loop [--ude] | --both-sides]
+        [--rig-effect NAME=VALUE ...] [--loop [--ude] | --both-sides | --cbc]
 """
 
 from __future__ import annotations
@@ -121,8 +127,8 @@ def _loop_figures(res, seconds, after, truth, reference) -> dict:
 
 
 def _criterion(runs: dict) -> dict:
-    """Issue 17's invasive criterion, the loop with the control against the loop on the
-    non-invasive campaign (within 0.1 m/s, at most 1.5 times its error), and how much
+    """Issue 17's invasive criterion, the fit (or loop) with the control against the same on
+    the non-invasive campaign (within 0.1 m/s, at most 1.5 times its error), and how much
     worse the loop without the control is."""
     held, ctrl, loose = (runs[k] for k in ("held", "loose+control", "loose"))
     apart = lambda a, b, k: (None if a[k] is None or b[k] is None else abs(a[k] - b[k]))
@@ -163,6 +169,9 @@ def main(argv=None) -> int:
                     help="also hold the invasive campaign with every target on the other "
                     "side of its orbit, and fit both campaigns together, with the control as "
                     "an input (\"both+control\") and without (\"both\")")
+    ap.add_argument("--cbc", action="store_true",
+                    help="the campaigns run by the CBC controller (cbc-campaign run), "
+                    "--loose being the invasive one's root tolerance")
     ap.add_argument("--add", nargs="+", default=[], metavar="EFFECT[=SHAPE]",
                     help="library effects added to every fit's mechanistic model (as "
                     "ude-fit fit --add), e.g. heave_unsteady_aero pitch_unsteady_aero")
@@ -175,6 +184,8 @@ def main(argv=None) -> int:
         ap.error("--ude applies with --loop only (without it every fit is a UDE fit)")
     if a.both_sides and a.loop:
         ap.error("--both-sides applies to the fit only, not with --loop")
+    if a.cbc and (a.loop or a.both_sides or a.rig_physics):
+        ap.error("--cbc applies to the fit only, without --both-sides or --rig-physics")
     effects = parse_effects("flutter", a.add)
     try:
         configured_params("flutter", a.rig_physics)
@@ -193,13 +204,16 @@ def main(argv=None) -> int:
                     else:
                         cases = fit_cases(d, loose, sigma=sigma, seed=seed, starts=a.starts,
                                           effects=effects, rig=rig,
-                                          both_sides=a.both_sides)
+                                          both_sides=a.both_sides, cbc=a.cbc)
                         figures = {name: _figures(*c) for name, c in cases.items()}
+                        if all("hopf" in figures.get(k, {}) for k, _, _ in FITS):
+                            figures["criterion"] = _criterion(figures)
                     figures["holding"] = _holding(d)
                 # "looseness", not "loose": that is the name of a fit among the figures
                 runs.append({"looseness": loose, "sigma": sigma, "seed": seed, **figures})
                 print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
     print(json.dumps({"benchmark": "invasive", "stage": "loop" if a.loop else "fit",
+                      "campaigns": "cbc-campaign run" if a.cbc else "held on the truth",
                       "starts": a.starts, "added": a.add,
                       "rig": {**rig, "truth": truth_reference(rig)}, "runs": runs},
                      indent=1))

@@ -7,6 +7,9 @@ tests/test_ude_control_input.py and benchmarks/invasive_benchmark.py share it.""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -62,6 +65,63 @@ def write_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0
     return truth_dataset(truth)
 
 
+# the CBC controller's flutter plan holds both branches at these (the Hopf point is 23.95)
+CBC_AIRSPEEDS = (19.0, 20.0, 21.0, 22.0, 23.0)
+
+
+def _cbc_toml(name: str, seed: int, sigma: float, effects: tuple, root: dict) -> str:
+    effects_toml = ", ".join(f'"{e}"' for e in effects)
+    root_toml = "\n".join(f"{k} = {v!r}" for k, v in root.items())
+    return f"""[campaign]
+name = "{name}"
+rig = "flutter"
+seed = {seed}
+
+[rig]
+lockstep = true
+noise = {sigma!r}
+effects = [{effects_toml}]
+
+[loop]
+rate_hz = 200
+lockstep_slice_s = 0.2
+
+[parameter]
+values = {list(CBC_AIRSPEEDS)}
+
+[cbc]
+{root_toml}
+"""
+
+
+def write_cbc_cases(folder: Path, tolerance: float, *, sigma: float = 0.0, seed: int = 0,
+                    effects: tuple = ()):
+    """Run the CBC controller's flutter plan (``cbc-campaign run``, the embedded rig in
+    lockstep, ``effects`` undeclared) at :data:`CBC_AIRSPEEDS` twice: at the plan's default
+    tolerances (held.h5) and with the root accepted at ``tolerance`` (loose.h5: the plan's
+    ``tolerance_rel``; under noise, ``root_method = "regression"`` and its ``root_se_rel``),
+    what "a campaign held with loose tolerances" is on the wire; returns the rig's own
+    open-loop orbits at those airspeeds as a dataset."""
+    folder = Path(folder)
+    root = {"root_method": "regression", "navg": 20} if sigma > 0 else {}
+    loose = {"root_se_rel": tolerance} if sigma > 0 else {"tolerance_rel": tolerance}
+    repo = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(repo), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    for name, settings in (("held", root), ("loose", {**root, **loose})):
+        toml = folder / f"{name}.toml"
+        toml.write_text(_cbc_toml(f"invasive-{name}", seed, sigma, tuple(effects), settings))
+        run = subprocess.run([sys.executable, "-m", "cbc_controller.cli", "run", str(toml),
+                              "--out", str(folder / f"{name}.h5")], env=env, cwd=repo,
+                             capture_output=True, text=True)
+        if run.returncode != 0:
+            raise RuntimeError(f"cbc-campaign run {toml.name} failed: "
+                               f"{run.stderr.strip().splitlines()[-1:]}")
+    truth = write_truth_campaign(folder / "truth.h5", "flutter", airspeeds=CBC_AIRSPEEDS,
+                                 effects=tuple(effects), record_s=0.0)
+    return truth_dataset(truth)
+
+
 def against_truth(model, truth_ds, ranges, scales, reference: dict = TRUTH_REFERENCE):
     """``model``'s ModelMetrics against the rig's open-loop orbits (``reference``: its
     Hopf and fold airspeeds)."""
@@ -99,20 +159,25 @@ def mechanistic_cases(folder: Path, loose: float, effects: tuple = (), *,
 def fit_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0,
               starts: int = 1, names=tuple(name for name, _, _ in FITS),
               effects: tuple = (), rig: dict | None = None,
-              both_sides: bool = False) -> dict:
+              both_sides: bool = False, cbc: bool = False) -> dict:
     """{name: (FitResult, the kept UDE's ModelMetrics against the truth, fit seconds, the
     mechanistic model's ModelMetrics against the truth)} for the fits of :data:`FITS`
     called ``names`` (with ``both_sides`` those of :data:`BOTH_SIDES_FITS` too) on
     campaigns written under ``folder``, with the library ``effects`` added to the
     mechanistic model (as --add), on the rig started with ``rig`` (as :func:`write_cases`
-    takes it)."""
+    takes it). With ``cbc`` the two campaigns are the CBC controller's
+    (:func:`write_cbc_cases`, ``loose`` its tolerance; the rig's ``effects`` only)."""
     from ude_fit.data import load
     from ude_fit.fitting import fit
     from ude_fit.training.options import FitOptions
 
     folder = Path(folder)
-    truth_ds = write_cases(folder, loose, sigma=sigma, seed=seed, rig=rig,
-                           both_sides=both_sides)
+    if cbc:
+        truth_ds = write_cbc_cases(folder, loose, sigma=sigma, seed=seed,
+                                   effects=(rig or {}).get("effects", ()))
+    else:
+        truth_ds = write_cases(folder, loose, sigma=sigma, seed=seed, rig=rig,
+                               both_sides=both_sides)
     reference = truth_reference(rig or {})
     fits = [f for f in FITS if f[0] in names] + list(BOTH_SIDES_FITS if both_sides else ())
     out = {}
