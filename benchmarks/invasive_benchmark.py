@@ -129,7 +129,7 @@ def _loop_figures(res, seconds, after, truth, reference) -> dict:
 def _criterion(runs: dict) -> dict:
     """Issue 17's invasive criterion, the fit (or loop) with the control against the same on
     the non-invasive campaign (within 0.1 m/s, at most 1.5 times its error), and how much
-    worse the loop without the control is."""
+    worse the same without the control is."""
     held, ctrl, loose = (runs[k] for k in ("held", "loose+control", "loose"))
     apart = lambda a, b, k: (None if a[k] is None or b[k] is None else abs(a[k] - b[k]))
     out = {"hopf_apart": apart(ctrl, held, "hopf"), "fold_apart": apart(ctrl, held, "fold"),
