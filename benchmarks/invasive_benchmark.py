@@ -17,7 +17,8 @@ as an input ("both+control") and without ("both"): one held orbit per airspeed a
 cannot tell the open-loop orbit from how far the control moved it, two either side can
 (docs/experiments.md, sixty-fourth session).
 ``--cbc`` runs the two campaigns with the CBC controller itself (``cbc-campaign run``, the
-flutter plan on the embedded rig in lockstep, at 19-23 m/s where it holds both branches):
+flutter plan on the embedded rig in lockstep, at 17-23 m/s, from just above the fold to
+just below the Hopf point, where it holds both branches):
 the non-invasive one at the plan's default tolerances, the invasive one with each
 ``--loose`` as the plan's ``tolerance_rel`` (under noise the regression root's
 ``root_se_rel``). Its points are off their orbits by what the root search left, not by a

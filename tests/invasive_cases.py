@@ -65,8 +65,12 @@ def write_cases(folder: Path, loose: float, *, sigma: float = 0.0, seed: int = 0
     return truth_dataset(truth)
 
 
-# the CBC controller's flutter plan holds both branches at these (the Hopf point is 23.95)
-CBC_AIRSPEEDS = (19.0, 20.0, 21.0, 22.0, 23.0)
+# Where the CBC controller's flutter plan holds both branches, from just above the fold
+# (16.82 m/s) to just below the Hopf point (23.95): the criterion compares fold points, and
+# a fold measured near, not extrapolated from orbits 2.4 m/s away, is one the campaign
+# pins (at 19-23 m/s the folds of the fits lay 0.05-0.20 m/s apart, experiments.md,
+# sixty-sixth session). The plan holds both branches at 17 m/s with and without noise.
+CBC_AIRSPEEDS = (17.0, 18.0, 19.0, 20.0, 21.0, 22.0, 23.0)
 
 
 def _cbc_toml(name: str, seed: int, sigma: float, effects: tuple, root: dict) -> str:
