@@ -59,7 +59,7 @@ jax.config.update("jax_enable_x64", True)
 from rig_sim.physics.configuration import configured_params  # noqa: E402
 from rig_sim.physics.effects import parse_effects as rig_effect_vector  # noqa: E402
 from tests.invasive_cases import (BOTH_SIDES_FITS, FITS, against_truth,  # noqa: E402
-                                  fit_cases, loop_cases, truth_reference, write_cases)
+                                  criterion, fit_cases, loop_cases, truth_reference, write_cases)
 from ude_fit.models.library import parse_effects  # noqa: E402
 
 
@@ -128,18 +128,11 @@ def _loop_figures(res, seconds, after, truth, reference) -> dict:
 
 
 def _criterion(runs: dict) -> dict:
-    """Issue 17's invasive criterion, the fit (or loop) with the control against the same on
-    the non-invasive campaign (within 0.1 m/s, at most 1.5 times its error), and how much
-    worse the same without the control is."""
-    held, ctrl, loose = (runs[k] for k in ("held", "loose+control", "loose"))
-    apart = lambda a, b, k: (None if a[k] is None or b[k] is None else abs(a[k] - b[k]))
-    out = {"hopf_apart": apart(ctrl, held, "hopf"), "fold_apart": apart(ctrl, held, "fold"),
-           "error_ratio": ctrl["branch_rms_vs_truth"] / held["branch_rms_vs_truth"],
-           "without_control_ratio": loose["branch_rms_vs_truth"] / held["branch_rms_vs_truth"]}
-    out["met"] = bool(out["hopf_apart"] is not None and out["hopf_apart"] <= 0.1
-                      and out["fold_apart"] is not None and out["fold_apart"] <= 0.1
-                      and out["error_ratio"] <= 1.5)
-    return out
+    """Issue 17's invasive criterion (tests/invasive_cases.criterion) on the figures of the
+    three fits (or loops)."""
+    figures = lambda r: {"hopf": r["hopf"], "fold": r["fold"],
+                         "branch_rms": r["branch_rms_vs_truth"]}
+    return criterion(*(figures(runs[k]) for k in ("held", "loose+control", "loose")))
 
 
 def _loop_run(folder, loose, sigma, seed, rig, ude_starts) -> dict:

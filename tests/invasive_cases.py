@@ -28,6 +28,23 @@ BOTH_SIDES = ("loose.h5", "flipped.h5")
 BOTH_SIDES_FITS = (("both+control", BOTH_SIDES, True), ("both", BOTH_SIDES, False))
 
 
+def criterion(held: dict, ctrl: dict, loose: dict) -> dict:
+    """Issue 17's invasive criterion: the fit (or loop) with the control as an input
+    (``ctrl``) against the same on the non-invasive campaign (``held``): Hopf and fold
+    within 0.1 m/s of its, branch error against the truth at most 1.5 times its; and how
+    much worse the same without the control (``loose``) is. Each a dict of "hopf" and
+    "fold" (m/s or None) and "branch_rms" against the truth."""
+    apart = lambda k: (None if ctrl[k] is None or held[k] is None
+                       else abs(ctrl[k] - held[k]))
+    out = {"hopf_apart": apart("hopf"), "fold_apart": apart("fold"),
+           "error_ratio": ctrl["branch_rms"] / held["branch_rms"],
+           "without_control_ratio": loose["branch_rms"] / held["branch_rms"]}
+    out["met"] = bool(out["hopf_apart"] is not None and out["hopf_apart"] <= 0.1
+                      and out["fold_apart"] is not None and out["fold_apart"] <= 0.1
+                      and out["error_ratio"] <= 1.5)
+    return out
+
+
 def truth_dataset(records):
     """The rig's own open-loop orbits (write_truth_campaign's records) as a dataset."""
     from ude_fit.data.orbit import Orbit, OrbitDataset
