@@ -18,8 +18,12 @@ mass and nonlinearity (each has one subcritical Hopf point and one fold), not fr
 fit's results; ``--physics`` runs any other.
 
     python3 benchmarks/unseen_configuration_benchmark.py [--configs stiff,narrow,wide,soft]
-        [--physics NAME=VALUE ...] [--sigma S] [--seeds 0] [--starts N] [--loop]
-        [-- fit options]
+        [--physics NAME=VALUE ...] [--sigma S] [--seeds 0] [--starts N]
+        [--speeds 7 --stable 4] [--loop] [-- fit options]
+
+``--speeds N --stable M``: a campaign of another size, the unstable orbit at N airspeeds and
+the stable one at the lowest M of them (the real other configuration's campaign had 8
+points, ours 11 by default).
 
 ``--loop`` runs ``ude-fit loop FOLDER --system flutter`` instead (the discovery loop, the
 pipeline's second part): the effects it adds, and its mechanistic and refined models'
@@ -79,9 +83,9 @@ def _figures(model: dict, truth: dict) -> dict:
 
 
 def run_one(physics: tuple, sigma: float, seed: int, starts: int | None, work: str,
-            extra: tuple = ()) -> dict:
+            extra: tuple = (), campaign: dict | None = None) -> dict:
     folder = os.path.join(work, "points")
-    truth = write_lee_campaign(folder, physics, sigma=sigma, seed=seed)
+    truth = write_lee_campaign(folder, physics, sigma=sigma, seed=seed, **(campaign or {}))
     out = os.path.join(work, "fit")
     cmd = [sys.executable, "-m", "ude_fit.cli", "fit", folder, "--system", "flutter",
            *(() if starts is None else ("--starts", str(starts))), "--seed", str(seed),
@@ -116,12 +120,13 @@ def run_one(physics: tuple, sigma: float, seed: int, starts: int | None, work: s
     return result
 
 
-def run_loop(physics: tuple, sigma: float, seed: int, work: str, extra: tuple = ()) -> dict:
+def run_loop(physics: tuple, sigma: float, seed: int, work: str, extra: tuple = (),
+             campaign: dict | None = None) -> dict:
     """``ude-fit loop FOLDER --system flutter`` on the configuration's files, as a
     researcher types it: the effects it adds, and its mechanistic model (before) and refined
     model (after) against the configured rig's truth, with the sensors' zero it chose."""
     folder = os.path.join(work, "points")
-    truth = write_lee_campaign(folder, physics, sigma=sigma, seed=seed)
+    truth = write_lee_campaign(folder, physics, sigma=sigma, seed=seed, **(campaign or {}))
     out = os.path.join(work, "loop")
     cmd = [sys.executable, "-m", "ude_fit.cli", "loop", folder, "--system", "flutter",
            "--seed", str(seed), *extra, "--out", out, "--quiet"]
@@ -161,6 +166,10 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
     ap.add_argument("--starts", type=int, default=None,
                     help="the fit's starts (default: the fit's own default)")
+    ap.add_argument("--speeds", type=int, default=7,
+                    help="airspeeds of the campaign, each with its unstable orbit (default 7)")
+    ap.add_argument("--stable", type=int, default=4,
+                    help="the lowest airspeeds that also have their stable orbit (default 4)")
     ap.add_argument("--loop", action="store_true",
                     help="run the discovery loop (ude-fit loop) instead of the fit")
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -173,15 +182,19 @@ def main(argv=None) -> int:
         configs[name] = CONFIGURATIONS[name]
     if args.physics:
         configs["given"] = tuple(args.physics)
+    if not 2 <= args.speeds or not 1 <= args.stable <= args.speeds:
+        ap.error(f"--speeds {args.speeds} --stable {args.stable}: need at least 2 airspeeds "
+                 "and 1 to that many stable orbits")
+    campaign = {"n_speeds": args.speeds, "n_stable": args.stable}
     runs = []
     for name, physics in configs.items():
         for seed in (int(s) for s in args.seeds.split(",") if s.strip()):
             with tempfile.TemporaryDirectory() as work:
                 sigma = (args.sigma if args.sigma is not None
                          else CONFIGURATION_SIGMA.get(name, DEFAULT_SIGMA))
-                run = (run_loop(physics, sigma, seed, work, extra) if args.loop
-                       else run_one(physics, sigma, seed, args.starts, work, extra))
-                runs.append({"config": name, **run})
+                run = (run_loop(physics, sigma, seed, work, extra, campaign) if args.loop
+                       else run_one(physics, sigma, seed, args.starts, work, extra, campaign))
+                runs.append({"config": name, **campaign, **run})
             print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
     print(json.dumps({"benchmark": "unseen_configuration",
                       "command": "loop" if args.loop else "fit", "runs": runs}, indent=1))

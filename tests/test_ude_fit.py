@@ -167,8 +167,14 @@ def test_diagram_command_retraces_a_saved_model(flutter_fit, tmp_path):
 def test_compiled_code_is_kept_between_runs_and_changes_nothing(flutter_fit, tmp_path):
     """The command line's compile cache (ude_fit/cli/compile_cache.py) in a folder of its
     own: the first run fills it, the second finds every executable there (it writes
-    nothing new) and traces the same diagram to the last digit."""
+    nothing new) and traces the same diagram to the last digit. The folder holds an entry
+    without its access-time record, as a run killed between the entry's two writes leaves
+    it: JAX's bounded cache would then fail every write with a warning and keep nothing;
+    the command line mends the entry first, so both runs say nothing of the cache."""
     cache = tmp_path / "xla"
+    cache.mkdir()
+    planted = cache / "jit_planted-0123abcd-cache"
+    planted.write_bytes(b"an executable whose run was killed")
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     env[compile_cache.ENV] = str(cache)
     diagrams, entries = [], []
@@ -179,10 +185,27 @@ def test_compiled_code_is_kept_between_runs_and_changes_nothing(flutter_fit, tmp
                             "--out", str(out)], capture_output=True, text=True, timeout=300,
                            env=env)
         assert r.returncode == 0, r.stderr
+        assert "compilation cache" not in r.stderr, r.stderr
         diagrams.append(json.loads((out / "mechanistic_diagram.json").read_text())["diagram"])
         entries.append(sorted(p.name for p in cache.glob("*-cache")))
-    assert entries[0] and entries[1] == entries[0]
+    assert len(entries[0]) > 1 and entries[1] == entries[0]
+    assert (cache / "jit_planted-0123abcd-atime").exists()
     assert diagrams[1] == diagrams[0]
+
+
+def test_an_entry_without_its_access_time_is_given_its_file_time(tmp_path):
+    """compile_cache.mend_entries: only the entry without a record gets one, holding its
+    file's modification time as JAX writes it (8 bytes, little-endian nanoseconds); a
+    second pass finds nothing to mend."""
+    whole, torn = tmp_path / "jit_a-1-cache", tmp_path / "jit_b-2-cache"
+    whole.write_bytes(b"x")
+    (tmp_path / "jit_a-1-atime").write_bytes((7).to_bytes(8, "little"))
+    torn.write_bytes(b"y")
+    assert compile_cache.mend_entries(tmp_path) == 1
+    assert int.from_bytes((tmp_path / "jit_b-2-atime").read_bytes(), "little") \
+        == torn.stat().st_mtime_ns
+    assert int.from_bytes((tmp_path / "jit_a-1-atime").read_bytes(), "little") == 7
+    assert compile_cache.mend_entries(tmp_path) == 0
 
 
 def test_the_compile_cache_folder_and_its_failure(tmp_path, capsys):
