@@ -156,15 +156,16 @@ LOOSE = 0.05        # the target 5 % off the truth orbit: orbits held 2-14 % off
 
 @pytest.fixture(scope="module")
 def fits(tmp_path_factory):
-    """One start of the default fit on the invasive campaign, with the control as an input
-    and without (tests/invasive_cases.py). The issue's comparison with a fit to the
-    non-invasive campaign (Hopf and fold within 0.1 m/s of its, error at most 1.5 times
-    its) is not met by the default's kept UDE and is measured by
+    """One start of the default fit on the invasive campaign with the control as an input
+    (tests/invasive_cases.py). The issue's comparison with a fit to the non-invasive
+    campaign (Hopf and fold within 0.1 m/s of its, error at most 1.5 times its) is not met
+    on this campaign by the default's kept UDE and is measured by
     benchmarks/invasive_benchmark.py, not here (seed 0: with the control, Hopf 24.09 and
     fold 16.79 against that fit's 23.99 and 16.26 m/s, error 0.37 % against 0.12 %); the
-    mechanistic model with the wake added meets it (the last test of this module)."""
-    out = fit_cases(tmp_path_factory.mktemp("fits"), LOOSE,
-                    names=("loose+control", "loose"))
+    mechanistic model with the wake added meets it (below), and the default fit meets it
+    on the CBC controller's own loose campaign (tests/test_ude_invasive_cbc.py, which also
+    has the fit without the control)."""
+    out = fit_cases(tmp_path_factory.mktemp("fits"), LOOSE, names=("loose+control",))
     for name, (r, m, _, _) in out.items():
         assert r.ude is not None and m is not None, name
     return {name: (r, m) for name, (r, m, _, _) in out.items()}
@@ -172,18 +173,17 @@ def fits(tmp_path_factory):
 
 def test_the_control_input_recovers_the_open_loop_diagram(fits):
     """The invasive campaign's points are 2-14 % off the open-loop orbits; fitted with the
-    control as a known input, the open-loop diagram is at most a third as far from the
-    truth as the same fit without it (measured 0.37 % against 2.56 %), every truth
-    orbit found; the identification records the gain and where it came from."""
-    with_u, without = fits["loose+control"][1].summary, fits["loose"][1].summary
-    assert with_u.missed == 0 and without.missed == 0
-    assert with_u.branch_rms <= without.branch_rms / 3, (with_u, without)
+    control as a known input, every truth orbit is found and the open-loop diagram lies
+    within 1 % of the truth's amplitudes (measured 0.37 %; the same fit without the control
+    2.56 %, benchmarks/invasive_benchmark.py); the identification records the gain and
+    where it came from."""
+    with_u = fits["loose+control"][1].summary
+    assert with_u.missed == 0 and with_u.branch_rms <= 0.01, with_u
     ident = fits["loose+control"][0].to_json()["mechanistic"]["identification"]
     control = dict(ident["control"])
     control.pop("against_heave_stiffness")
     assert control == {"unit": "N", "gain": 1.0,
                        "gain_source": "the control is recorded as a force (N)"}
-    assert "control" not in fits["loose"][0].to_json()["mechanistic"]["identification"]
 
 
 def test_the_fit_with_the_control_judges_its_starts_under_the_control(fits):
@@ -193,7 +193,8 @@ def test_the_fit_with_the_control_judges_its_starts_under_the_control(fits):
     diagram does (measured 0.12 % against 2.17 %) and at least 10 times closer than the
     mechanistic model's under the same control (2.27 %), so it is adequate by what the data
     measured; metrics.json, the report and what ``ude-fit fit`` prints carry both
-    yardsticks. Without the control nothing of this is there."""
+    yardsticks (without the control nothing of this is there:
+    tests/test_ude_invasive_cbc.py)."""
     r = fits["loose+control"][0]
     doc = r.to_json()
     (rec,) = doc["starts"]["records"]
@@ -208,10 +209,6 @@ def test_the_fit_with_the_control_judges_its_starts_under_the_control(fits):
     assert len(mech["errors"]) == len(mech["amplitudes"]) == doc["data"]["points"]
     assert rec["adequate"] and doc["ude"]["controlled"]["judged"] == c["judged"]
     assert doc["starts"]["criterion"]["judged_by"] == "the orbits under the recorded control"
-    plain = fits["loose"][0].to_json()
-    assert plain["starts"]["criterion"]["judged_by"] == "the diagram"
-    assert "controlled" not in plain["mechanistic"] and "controlled" not in plain["ude"]
-    assert all("controlled" not in x for x in plain["starts"]["records"])
     from ude_fit.report.markdown import render
     text = render({**doc, "version": "test", "written": "now", "command": "fit",
                    "options": r.options.to_json()}, {})
@@ -222,7 +219,6 @@ def test_the_fit_with_the_control_judges_its_starts_under_the_control(fits):
     assert said[1] == (f"judged under the recorded control: mechanistic "
                         f"{100 * mech['judged']['branch_rms']:.2f} % (0 missed), UDE "
                         f"{100 * c['branch_rms']:.2f} % (0 missed)"), said
-    assert len(summary(fits["loose"][0], 1)) == 1
 
 
 def test_the_control_is_reported_against_the_heave_spring(fits):
@@ -256,8 +252,7 @@ def test_the_fit_says_where_the_invasive_points_lie_and_that_a_branch_is_one_sid
     open-loop orbits (measured: 2-5 % above the truth's on the unstable branch, within
     0.7 % on the stable one) every invasive point keeps its side, so the fit records the
     unstable branch as held on one side, not the stable one, and the report and what
-    ``ude-fit fit`` prints tell the user to hold two targets per airspeed. A fit without
-    the control records nothing of this."""
+    ``ude-fit fit`` prints tell the user to hold two targets per airspeed."""
     from ude_fit.analysis.controlled import HeldSides
     from ude_fit.report.markdown import render
     r = fits["loose+control"][0]
@@ -273,7 +268,6 @@ def test_the_fit_says_where_the_invasive_points_lie_and_that_a_branch_is_one_sid
     assert "hold each airspeed at two targets" in warning and warning in text
     from ude_fit.cli.fit import summary
     assert summary(r, 1)[-1] == warning
-    assert "held_sides" not in (fits["loose"][0].to_json()["ude"].get("controlled") or {})
     balanced = HeldSides({"stable": 2, "unstable": 1}, {"stable": 1, "unstable": 0})
     assert balanced.one_sided == () and balanced.warning() is None
     with pytest.raises(ValueError, match="held sides"):

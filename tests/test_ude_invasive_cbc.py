@@ -70,3 +70,20 @@ def test_the_report_says_which_points_the_loose_campaign_held_invasively(fits):
     assert "| target vs response | invasive |" in text
     for point in doc["data"]["point_records"]:
         assert f"| `{point['source']}` | {point['parameter']:.4g} |" in text, point
+
+
+def test_without_the_control_nothing_is_judged_under_it(fits):
+    """The loose campaign fitted without the control as an input: no gain in the
+    identification, the starts judged by the open-loop diagram, no orbits under the control
+    and no held sides anywhere in metrics.json, and ``ude-fit fit`` prints one line (the
+    fit with the control: its orbits under the control too)."""
+    from ude_fit.cli.fit import summary
+    plain = fits["loose"][0].to_json()
+    assert "control" not in plain["mechanistic"]["identification"]
+    assert plain["starts"]["criterion"]["judged_by"] == "the diagram"
+    assert "controlled" not in plain["mechanistic"] and "controlled" not in plain["ude"]
+    assert all("controlled" not in x for x in plain["starts"]["records"])
+    assert len(summary(fits["loose"][0], 1)) == 1
+    with_u = fits["loose+control"][0].to_json()
+    assert with_u["starts"]["criterion"]["judged_by"] == "the orbits under the recorded control"
+    assert "controlled" in with_u["ude"] and len(summary(fits["loose+control"][0], 1)) >= 2
