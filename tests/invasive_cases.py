@@ -45,6 +45,13 @@ def criterion(held: dict, ctrl: dict, loose: dict) -> dict:
     return out
 
 
+def criterion_figures(metrics: dict) -> dict:
+    """A model's metrics against the truth (``ModelMetrics.to_json``) as :func:`criterion`
+    reads them."""
+    return {"hopf": metrics["hopf"]["model"], "fold": metrics["fold"]["model"],
+            "branch_rms": metrics["branch_rms"]}
+
+
 def truth_dataset(records):
     """The rig's own open-loop orbits (write_truth_campaign's records) as a dataset."""
     from ude_fit.data.orbit import Orbit, OrbitDataset

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from tests import ude_fixtures as F
-from tests.invasive_cases import criterion, fit_cases, mechanistic_cases
+from tests.invasive_cases import criterion, criterion_figures, fit_cases, mechanistic_cases
 from tests.test_ude_realdata import write_lee
 from ude_fit import cli
 from ude_fit._fourier import K
@@ -290,12 +290,6 @@ def test_the_spring_ratio_of_a_lee2020_record(tmp_path):
 WAKE = (("heave_unsteady_aero", None), ("pitch_unsteady_aero", None))
 
 
-def _figures(metrics: dict) -> dict:
-    """A model's metrics against the truth (``to_json``) as the criterion reads them."""
-    return {"hopf": metrics["hopf"]["model"], "fold": metrics["fold"]["model"],
-            "branch_rms": metrics["branch_rms"]}
-
-
 @pytest.fixture(scope="module")
 def wake(tmp_path_factory):
     """The three fits' mechanistic stage with the wake's lag added (`--add
@@ -316,7 +310,7 @@ def test_with_the_wake_added_the_control_input_recovers_the_non_invasive_fit(wak
     held, with_u, without = (wake[1][name][0].to_json()
                              for name in ("held", "loose+control", "loose"))
     assert held["missed"] == with_u["missed"] == without["missed"] == 0
-    said = criterion(*(_figures(m) for m in (held, with_u, without)))
+    said = criterion(*(criterion_figures(m) for m in (held, with_u, without)))
     assert said["met"], said
     assert said["without_control_ratio"] >= 10, said
     assert abs(without["fold"]["model"] - held["fold"]["model"]) >= 0.3, (without, held)
@@ -356,7 +350,7 @@ def test_the_loop_with_the_control_input_recovers_the_non_invasive_loop(loops):
     for name in ("held", "loose+control"):
         added = loops[name][0].added
         assert added and effect("flutter", added[0][0]).kind == AERO, loops[name][0].steps
-    said = criterion(*(_figures(m) for m in (held, with_u, without)))
+    said = criterion(*(criterion_figures(m) for m in (held, with_u, without)))
     assert said["met"], said
     assert said["without_control_ratio"] >= 10, said
     assert abs(without["fold"]["model"] - held["fold"]["model"]) >= 0.3, (without, held)
