@@ -14,15 +14,34 @@ REPO = Path(__file__).resolve().parents[1]
 
 # XLA executables kept on disk and shared by the session's workers, modules and the
 # subprocesses they start (which inherit the environment): each module's fits compile the
-# same shooting losses, and a module's in-memory cache is let go after it (below). Every
-# executable is kept however fast it compiled; a size bound turns on JAX's file lock, so
-# two workers writing one entry cannot tear it. Results are the same as compiling afresh.
-# Set before anything imports jax, which reads these at import.
-os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(REPO / ".pytest_cache" / "jax"))
-os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(4 << 30))
+# same shooting losses, and a module's in-memory cache is let go after it (below). The
+# folder is the user's cache, not the clone, so a later run of the suite on the same
+# machine (CI clones afresh every time) loads what an earlier one compiled: an executable is
+# found again only for the same program, JAX version and machine, so results are the same
+# as compiling afresh. Every executable is kept however fast it compiled; the size bound
+# (least recently used go first) turns on JAX's file lock, so two workers writing one entry
+# cannot tear it. Set before anything imports jax, which reads these at import.
+def _compiled_code_folder() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    where = Path(base) / "ude-fit" / "xla-tests"
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        return where
+    except OSError:                 # no writable cache folder: this run's own, in the clone
+        return REPO / ".pytest_cache" / "jax"
 
-from rig_sim.harness import PtyPair, RigProcess  # noqa: E402  (after the cache settings)
+
+if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = str(_compiled_code_folder())
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(2 << 30))
+
+from ude_fit.cli.compile_cache import mend_entries  # noqa: E402  (after the cache settings)
+from rig_sim.harness import PtyPair, RigProcess  # noqa: E402
+
+# a run killed between an entry's two writes leaves it without its access-time record, and
+# then nothing new is kept (ude_fit/cli/compile_cache.py); the folder outlives the run
+mend_entries(Path(os.environ["JAX_COMPILATION_CACHE_DIR"]))
 
 
 @pytest.fixture
