@@ -22,6 +22,8 @@ REPO = Path(__file__).resolve().parents[1]
 # (least recently used go first) turns on JAX's file lock, so two workers writing one entry
 # cannot tear it. Set before anything imports jax, which reads these at import.
 def _compiled_code_folder() -> Path:
+    # the XDG rule of ude_fit.cli.compile_cache.cache_dir, written out here because
+    # importing ude_fit imports jax, which must come after these settings
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     where = Path(base) / "ude-fit" / "xla-tests"
     try:
@@ -41,8 +43,9 @@ from rig_sim.harness import PtyPair, RigProcess  # noqa: E402
 
 # a run killed between an entry's two writes leaves it without its access-time record, and
 # then nothing new is kept (ude_fit/cli/compile_cache.py); the folder outlives the run
-if Path(os.environ["JAX_COMPILATION_CACHE_DIR"]).is_dir():
-    mend_entries(Path(os.environ["JAX_COMPILATION_CACHE_DIR"]))
+_COMPILED_CODE = Path(os.environ["JAX_COMPILATION_CACHE_DIR"])
+if _COMPILED_CODE.is_dir():
+    mend_entries(_COMPILED_CODE)
 
 
 @pytest.fixture
