@@ -25,6 +25,16 @@ fit's results; ``--physics`` runs any other.
 the stable one at the lowest M of them (the real other configuration's campaign had 8
 points, ours 11 by default).
 
+``--airspeed-error E`` records each point at its airspeed plus a normal error of standard
+deviation E m/s (a tunnel's speed reading and the air's density are never exact): points
+that scatter about the rig's branches as measured ones do, where the default files lie on
+them to within the rig's noise.
+
+``--target-error F`` sets each point's control target off its orbit's amplitude by a normal
+error of relative standard deviation F, so that the control holds every point a little off
+its open-loop orbit, as the lee2020 files' control does (the default command does not take
+the control as an input: this asks how far such points mislead it).
+
 ``--loop`` runs ``ude-fit loop FOLDER --system flutter`` instead (the discovery loop, the
 pipeline's second part): the effects it adds, and its mechanistic and refined models'
 branch error (missed points counted), missed points, Hopf and fold against the truth.
@@ -170,6 +180,12 @@ def main(argv=None) -> int:
                     help="airspeeds of the campaign, each with its unstable orbit (default 7)")
     ap.add_argument("--stable", type=int, default=4,
                     help="the lowest airspeeds that also have their stable orbit (default 4)")
+    ap.add_argument("--airspeed-error", type=float, default=0.0, metavar="M_PER_S",
+                    help="each file's recorded airspeed off the one its orbit was held at by "
+                         "a normal error of this standard deviation (default 0)")
+    ap.add_argument("--target-error", type=float, default=0.0, metavar="FRACTION",
+                    help="each point's control target off its orbit's amplitude by a normal "
+                         "error of this relative standard deviation (default 0)")
     ap.add_argument("--loop", action="store_true",
                     help="run the discovery loop (ude-fit loop) instead of the fit")
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -185,7 +201,12 @@ def main(argv=None) -> int:
     if not 2 <= args.speeds or not 1 <= args.stable <= args.speeds:
         ap.error(f"--speeds {args.speeds} --stable {args.stable}: need at least 2 airspeeds "
                  "and 1 to that many stable orbits")
-    campaign = {"n_speeds": args.speeds, "n_stable": args.stable}
+    if not args.airspeed_error >= 0:
+        ap.error(f"--airspeed-error {args.airspeed_error}: must be 0 or more m/s")
+    if not 0 <= args.target_error < 0.5:
+        ap.error(f"--target-error {args.target_error}: must be a fraction in [0, 0.5)")
+    campaign = {"n_speeds": args.speeds, "n_stable": args.stable,
+                "airspeed_error": args.airspeed_error, "target_error": args.target_error}
     runs = []
     for name, physics in configs.items():
         for seed in (int(s) for s in args.seeds.split(",") if s.strip()):

@@ -83,7 +83,7 @@ def held_fractions(ts: dict, amplitude: float, blocks: int = 4) -> np.ndarray:
                                      np.array_split(turn, blocks))])
 
 
-def write_point(path, truth: dict, ts: dict, frequency: float, rng,
+def write_point(path, airspeed: float, ts: dict, frequency: float, rng,
                 dropout: float) -> None:
     heave = ts["x"] / HEAVE_M_PER_V + HEAVE_OFFSET_V
     target = ts["target"] / HEAVE_M_PER_V + HEAVE_OFFSET_V
@@ -93,18 +93,31 @@ def write_point(path, truth: dict, ts: dict, frequency: float, rng,
     data = np.vstack([heave, target, control, pitch, np.full(heave.size, HEAVE_OFFSET_V)])
     t = np.arange(heave.size) / SPECS["flutter"].rate_hz    # the board's own sample rate
     scipy.io.savemat(str(path), {"data": data, "time": t[None, :],
-                                 "Wind_sped": float(truth["parameter"]),
+                                 "Wind_sped": float(airspeed),
                                  "freq_actual": float(frequency)})
 
 
 def write_lee_campaign(folder, physics: tuple, *, sigma: float, seed: int, n_speeds: int = 7,
                        n_stable: int = 4, dropout: float = 0.1,
-                       record_s: float = RECORD_S) -> dict:
+                       record_s: float = RECORD_S, airspeed_error: float = 0.0,
+                       target_error: float = 0.0) -> dict:
     """The configured rig's CBC points as wind-tunnel files in ``folder``: the unstable orbit
     at each of ``n_speeds`` airspeeds (:func:`point_airspeeds`), the stable one at the lowest
     ``n_stable`` of them, named as the lab names them (CBC_stable_v20_7.mat,
-    CBC_unstable_v21_6.mat). Returns the truth: Hopf, fold, and per file its orbit's
-    airspeed, stability and heave amplitude."""
+    CBC_unstable_v21_6.mat). ``airspeed_error`` (m/s): each file's recorded airspeed is the
+    one its orbit was held at plus a normal error of that standard deviation, drawn anew
+    per point (a tunnel's speed reading, and the air's density drifting between points,
+    are never exact; the points then scatter about the rig's branches as measured ones
+    do). ``target_error``: each point's control target is its orbit's amplitude times 1 plus
+    a normal error of that standard deviation, so that the control holds an orbit of the
+    controlled system near the open-loop one (a CBC search stopped at its tolerance: the
+    lee2020 files' control has a first harmonic at every point). Returns the truth: Hopf,
+    fold, and per file its orbit's airspeed, the recorded one, the target's scale, its
+    stability and heave amplitude."""
+    if not airspeed_error >= 0:
+        raise ValueError(f"airspeed_error must be 0 or more m/s, not {airspeed_error}")
+    if not 0 <= target_error < 0.5:
+        raise ValueError(f"target_error must be a fraction in [0, 0.5), not {target_error}")
     os.makedirs(folder, exist_ok=True)
     ref = truth_of(physics)
     speeds = point_airspeeds(ref["hopf"], ref["fold"], n_speeds)
@@ -116,25 +129,35 @@ def write_lee_campaign(folder, physics: tuple, *, sigma: float, seed: int, n_spe
         raise ValueError(f"rig configuration {physics}: not one stable and one unstable orbit "
                          f"at each airspeed of {np.round(speeds, 2).tolist()}")
     rng = np.random.default_rng(seed)
+    # its own stream, so that a campaign without the error is the one it always was
+    speed_rng = np.random.default_rng([seed, 1])
+    target_rng = np.random.default_rng([seed, 2])
     points = []
     for i, tr in enumerate(orbits):
         k = int(np.argmin(np.abs(speeds - tr["parameter"])))
         if tr["stable"] and k >= n_stable:
             continue
+        scale = 1.0 + (target_rng.normal(0.0, target_error) if target_error > 0 else 0.0)
         ts, _, f_est = run_board_on_orbit("flutter", tr, sigma=sigma, seed=seed + i,
-                                          record_s=record_s, physics=tuple(physics))
+                                          record_s=record_s, physics=tuple(physics),
+                                          target_scale=scale)
         kind = "stable" if tr["stable"] else "unstable"
-        held = held_fractions(ts, tr["amplitude"])
+        # held on its target: the response about it, not the open-loop orbit's amplitude
+        # (the control moves it part of the way to the target)
+        held = held_fractions(ts, tr["amplitude"] * scale)
         if np.any(np.abs(held - 1.0) > HOLD_TOLERANCE):
             raise ValueError(f"rig configuration {physics}, sigma {sigma}: the {kind} orbit "
                              f"at {tr['parameter']:.2f} m/s was not held (response "
                              f"{np.round(held, 2).tolist()} of the target in the record's "
                              "quarters); try less noise")
-        name = f"CBC_{kind}_v{tr['parameter']:.1f}".replace(".", "_") + ".mat"
+        recorded = tr["parameter"] + (speed_rng.normal(0.0, airspeed_error)
+                                      if airspeed_error > 0 else 0.0)
+        name = f"CBC_{kind}_v{recorded:.1f}".replace(".", "_") + ".mat"
         if any(p["file"] == name for p in points):
             raise ValueError(f"airspeeds {np.round(speeds, 2).tolist()}: two round to {name} "
                              "(the lab's names hold 0.1 m/s)")
-        write_point(os.path.join(folder, name), tr, ts, f_est, rng, dropout)
-        points.append({"file": name, "airspeed": tr["parameter"], "stable": tr["stable"],
+        write_point(os.path.join(folder, name), recorded, ts, f_est, rng, dropout)
+        points.append({"file": name, "airspeed": tr["parameter"], "recorded": recorded,
+                       "target_scale": scale, "stable": tr["stable"],
                        "amplitude": tr["amplitude"]})
     return {**ref, "physics": list(physics), "sigma": sigma, "seed": seed, "points": points}

@@ -213,3 +213,56 @@ def test_a_rest_position_moved_by_a_lift_at_rest_is_found_at_every_airspeed(writ
     p = identify_mechanistic(data, "flutter")[1]["parameters"]
     np.testing.assert_allclose([p["k_alpha"], p["k_alpha2"], p["k_alpha3"]],
                                [70.0, 774.7, 3490.7], rtol=0.03)
+
+
+def test_an_airspeed_reading_error_moves_the_recorded_airspeed_not_the_orbit(tmp_path):
+    # the benchmark's planted scatter: the files say where the tunnel's reading put each
+    # point, the records are still the rig's orbits at the airspeed it was held at
+    exact = write_lee_campaign(tmp_path / "exact", PHYSICS, sigma=0.0, seed=3, n_speeds=2,
+                               n_stable=1, record_s=2.0)
+    read = write_lee_campaign(tmp_path / "read", PHYSICS, sigma=0.0, seed=3, n_speeds=2,
+                              n_stable=1, record_s=2.0, airspeed_error=0.3)
+    assert [p["airspeed"] for p in read["points"]] == [p["airspeed"] for p in exact["points"]]
+    assert all(p["recorded"] == p["airspeed"] for p in exact["points"])
+    offsets = np.array([p["recorded"] - p["airspeed"] for p in read["points"]])
+    assert np.all(offsets != 0.0) and np.all(np.abs(offsets) < 5 * 0.3)
+    ds = load(tmp_path / "read", "flutter")
+    by_name = {o.source.rsplit("/", 1)[-1]: o for o in ds}
+    for p, q in zip(read["points"], exact["points"]):
+        assert p["file"] == f"CBC_{'stable' if p['stable'] else 'unstable'}_v" + \
+            f"{p['recorded']:.1f}".replace(".", "_") + ".mat"
+        assert by_name[p["file"]].parameter == pytest.approx(p["recorded"])
+        a = scipy_io_data(tmp_path / "read" / p["file"])
+        b = scipy_io_data(tmp_path / "exact" / q["file"])
+        assert np.array_equal(a, b)     # the same board run, its own random stream untouched
+    with pytest.raises(ValueError, match="airspeed_error"):
+        write_lee_campaign(tmp_path / "bad", PHYSICS, sigma=0.0, seed=0, airspeed_error=-0.1)
+
+
+def scipy_io_data(path):
+    import scipy.io
+    return scipy.io.loadmat(str(path))["data"]
+
+
+def test_a_target_off_the_orbit_holds_the_point_off_it_with_the_control(tmp_path):
+    # the benchmark's planted invasiveness: each point's target off its open-loop orbit by
+    # a few per cent; the board's control holds the response off the orbit on the target's
+    # side (past it for an unstable orbit, whose own dynamics push away from it), and the
+    # control record carries the first harmonic that does so
+    truth = write_lee_campaign(tmp_path, PHYSICS, sigma=0.0, seed=1, n_speeds=2, n_stable=1,
+                               record_s=2.0, target_error=0.05)
+    ds = load(tmp_path, "flutter")
+    by_name = {o.source.rsplit("/", 1)[-1]: o for o in ds}
+    scales = np.array([p["target_scale"] for p in truth["points"]])
+    assert np.all(np.abs(scales - 1.0) > 1e-3)
+    for p in truth["points"]:
+        o = by_name[p["file"]]
+        held = o.amplitude / p["amplitude"]
+        offset = p["target_scale"] - 1.0
+        assert np.sign(held - 1.0) == np.sign(offset), (p, held)
+        assert abs(held - 1.0) > 0.5 * abs(offset), (p, held)
+        import scipy.io
+        u = scipy.io.loadmat(str(tmp_path / p["file"]))["data"][2]
+        assert np.ptp(u) > 0.0
+    with pytest.raises(ValueError, match="target_error"):
+        write_lee_campaign(tmp_path / "bad", PHYSICS, sigma=0.0, seed=0, target_error=0.6)
