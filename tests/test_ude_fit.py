@@ -106,10 +106,14 @@ def test_at_least_80_percent_of_starts_adequate(flutter_fit):
     assert st["adequate"] >= 0.8 * st["requested"]
     kept = [r for r in st["records"] if r["start"] == st["kept"]][0]
     assert kept["adequate"]
-    # two starts cannot outvote each other: the smaller branch error is kept
+    # two starts cannot outvote each other: of the adequate ones with the fewest folds, the
+    # smaller branch error is kept
     assert st["kept_by"]["rule"] == "smallest error" and st["kept_by"]["start"] == st["kept"]
-    assert kept["metrics"]["branch_rms"] == min(r["metrics"]["branch_rms"]
-                                                for r in st["records"] if r["adequate"])
+    adequate = [r for r in st["records"] if r["adequate"]]
+    fewest = min(r["metrics"]["fold_count"] for r in adequate)
+    assert kept["metrics"]["fold_count"] == fewest
+    assert kept["metrics"]["branch_rms"] == min(r["metrics"]["branch_rms"] for r in adequate
+                                                if r["metrics"]["fold_count"] == fewest)
 
 
 def test_report_and_figures_written(flutter_fit):

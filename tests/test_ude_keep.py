@@ -29,11 +29,13 @@ class Start:
 
 
 def _metrics(error: float, hopf: float | None, fold: float | None,
-             missed: int = 0) -> ModelMetrics:
+             missed: int = 0, turns: tuple = ()) -> ModelMetrics:
+    """``turns``: folds beyond the first (within the measured span, where a network bends
+    through scattered points)."""
     found = PointError(20.0, 2.4, 0.08, True, model=0.08 + error * A_MAX, error=error,
                        trajectory=0.01, model_stable=True)
     points = [found] + [PointError(21.0 + k, 2.5, 0.05, False) for k in range(missed)]
-    folds = [] if fold is None else [fold]
+    folds = ([] if fold is None else [fold]) + list(turns)
     return ModelMetrics.of(BranchErrors.of(points, A_MAX),
                            {"hopf": hopf, "fold": fold, "folds": folds, "isolas": 0,
                             "isola_folds": []}, {}, "given")
@@ -127,6 +129,32 @@ def test_forced_landmarks_are_the_folds_outside_each_frequencys_forcing_levels()
     assert m.landmarks(spans) == {"fold 1 at 12 Hz": 0.4, "fold 3 at 12 Hz": 0.9}
 
 
+def test_starts_with_more_folds_than_the_fewest_are_left_out():
+    # starts 1 and 4 fit closest, with a second fold inside the measured range (the network
+    # bent through scattered points); by their Hopf points they would be the medoid of all
+    # five (summed distances 2.0, 3.5, 2.5, 2.0, 4.0 with every first fold at 18.5)
+    starts = [Start(1, _metrics(0.005, 25.5, 18.5, turns=(21.0,))),
+              Start(2, _metrics(0.020, 25.0, 18.5)),
+              Start(3, _metrics(0.025, 26.0, 18.5)),
+              Start(4, _metrics(0.006, 25.5, 18.5, turns=(22.0,))),
+              Start(5, _metrics(0.030, 26.5, 18.5))]
+    kept = choose_kept(starts, SPANS)
+    assert kept.pool == (2, 3, 5) and kept.folds == 1 and kept.more_folds == (1, 4)
+    assert kept.distance == {2: 2.5, 3: 1.5, 5: 2.0}
+    assert kept.start == 3
+    assert "(starts 1, 4) were left out" in kept.describe()
+    assert KeptStart.from_json(kept.to_json()) == kept
+    # two one-fold starts cannot outvote each other: the smaller error of the two
+    starts[2].adequate = False
+    kept = choose_kept(starts, SPANS)
+    assert kept == KeptStart(2, "smallest error", folds=1, more_folds=(1, 4))
+    assert "smallest branch error among those with 1 fold" in kept.describe()
+    # every adequate start with two folds: nothing is left out
+    for s in (starts[1], starts[4]):
+        s.adequate = False
+    assert choose_kept(starts, SPANS) == KeptStart(1, "smallest error")
+
+
 def test_the_record_round_trips_and_refuses_what_cannot_be():
     kept = choose_kept(_starts([(0.010, 26.0, 18.5), (0.020, 25.0, 18.4),
                                 (0.025, 25.1, 18.6)]), SPANS)
@@ -138,6 +166,11 @@ def test_the_record_round_trips_and_refuses_what_cannot_be():
         KeptStart(1, "consensus", (1, 2), ("fold",), {1: 0.1, 2: 0.1})
     with pytest.raises(ValueError, match="exactly when"):
         KeptStart(None, "smallest error")
+    with pytest.raises(ValueError, match="kept start is not among them"):
+        KeptStart(1, "smallest error", folds=1, more_folds=(1,))
+    # a record written before the fold count was part of the rule
+    old = {k: v for k, v in kept.to_json().items() if k not in ("folds", "more_folds")}
+    assert KeptStart.from_json(old) == kept
 
 
 def test_the_measured_spans_are_per_branch_family():

@@ -12,8 +12,9 @@ branches (:func:`data_scatter`), whichever is largest. With the recorded control
 input every error compared is that of the model's orbits under the control at the points,
 where its diagram has an orbit of each point's stability (:func:`.analysis.controlled.judged`:
 the points are orbits of the controlled system, the diagram is the open-loop one). The
-kept start is the medoid of three or more adequate starts by their Hopf and fold locations
-outside the measured range, else the adequate one with the smallest branch error
+kept start is, of the adequate starts with the fewest folds, the medoid of three or more by
+their Hopf and fold locations outside the measured range, else the one with the smallest
+branch error
 (:mod:`.analysis.keep`); if none is adequate, the one with the fewest missed points and
 then the smallest error, and the result says so.
 """

@@ -99,7 +99,7 @@ def add_fit_arguments(p) -> None:
                    "(default), or that refined by output error on the periodic orbits")
     p.add_argument("--starts", type=positive_int("--starts"), default=DEFAULT_STARTS,
                    help="random starts; an adequate one is kept, the medoid of 3 or more "
-                        f"(default {DEFAULT_STARTS})")
+                        f"with the fewest folds (default {DEFAULT_STARTS})")
     p.add_argument("--starts-together", action="store_true",
                    help="train the network's starts together: Adam vmapped over the starts, "
                    "L-BFGS one start at a time (each start the same as alone; 16 starts "
