@@ -16,16 +16,17 @@ cannot outvote each other) and between equally central starts. With no adequate 
 one with the fewest missed points and then the smallest error is kept (the fit says it is
 not adequate).
 
-Before either, the pool is narrowed to the adequate starts with the fewest folds. The
-adequacy check allows the mechanistic model's folds plus one per branch family, so that a
-network may add the fold the data needs where the mechanistic model has none (lee2020:
-no orbit at all); where the mechanistic model has a fold of its own, a start may then add
-a second one the data does not show. On points that scatter about their branches (a tunnel
-reading's error, a control left slightly invasive) such starts are common and fit the
-points closest: the network bends through the scatter. Held-out wind-tunnel files of the
-benchmark's `narrow` and `soft` rigs so scattered (docs/experiments.md, sixty-ninth
-session) kept a start with two folds where starts with one were adequate. Of two adequate
-diagrams the one with fewer turns is the one the data asks for.
+Before the medoid or the smallest error decides, the adequate starts are narrowed to those
+with the fewest folds. The adequacy check allows the mechanistic model's folds plus one
+per branch family, so that a network may add the fold the data needs where the
+mechanistic model has none (lee2020: no orbit at all); where the mechanistic model has a
+fold of its own, a start may then add a second one the data does not show. On points that
+scatter about their branches (a tunnel reading's error, a control left slightly invasive)
+such starts are common and fit the points closest: the network bends through the scatter.
+Held-out wind-tunnel files of the benchmark's `narrow` and `soft` rigs so scattered
+(docs/experiments.md, sixty-ninth session) kept a start with two folds where starts with
+one were adequate. Of two adequate diagrams the one with fewer turns is the one the data
+asks for.
 
 A cut at the data's scatter (only starts closer to the points than their own scatter in
 the pool) was the first form: a correct model's branch error is about the scatter, and
