@@ -110,8 +110,8 @@ def write_lee_campaign(folder, physics: tuple, *, sigma: float, seed: int, n_spe
     are never exact; the points then scatter about the rig's branches as measured ones
     do). ``target_error``: each point's control target is its orbit's amplitude times 1 plus
     a normal error of that standard deviation, so that the control holds an orbit of the
-    controlled system near the open-loop one (a CBC search stopped at its tolerance: the
-    lee2020 files' control has a first harmonic at every point). Returns the truth: Hopf,
+    controlled system a little off the open-loop one (a CBC search stopped at its tolerance:
+    the lee2020 files' control has a first harmonic at every point). Returns the truth: Hopf,
     fold, and per file its orbit's airspeed, the recorded one, the target's scale, its
     stability and heave amplitude."""
     if not airspeed_error >= 0:
@@ -142,8 +142,9 @@ def write_lee_campaign(folder, physics: tuple, *, sigma: float, seed: int, n_spe
                                           record_s=record_s, physics=tuple(physics),
                                           target_scale=scale)
         kind = "stable" if tr["stable"] else "unstable"
-        # held on its target: the response about it, not the open-loop orbit's amplitude
-        # (the control moves it part of the way to the target)
+        # held: the response against the target it was held at, not the open-loop orbit's
+        # amplitude (off target the control moves the response off the orbit: a stable one
+        # part of the way to the target, an unstable one past it)
         held = held_fractions(ts, tr["amplitude"] * scale)
         if np.any(np.abs(held - 1.0) > HOLD_TOLERANCE):
             raise ValueError(f"rig configuration {physics}, sigma {sigma}: the {kind} orbit "
