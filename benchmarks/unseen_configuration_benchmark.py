@@ -56,7 +56,7 @@ import time
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 sys.path.insert(0, ROOT)
 
-from tests.lee_format import write_lee_campaign  # noqa: E402
+from tests.lee_format import TARGET_ERROR_MAX, write_lee_campaign  # noqa: E402
 
 CONFIGURATIONS = {
     # stiffer in pitch and heave, less heave damping: Hopf 25.26, fold 18.46 m/s
@@ -203,8 +203,9 @@ def main(argv=None) -> int:
                  "and 1 to that many stable orbits")
     if not args.airspeed_error >= 0:
         ap.error(f"--airspeed-error {args.airspeed_error}: must be 0 or more m/s")
-    if not 0 <= args.target_error < 0.5:
-        ap.error(f"--target-error {args.target_error}: must be a fraction in [0, 0.5)")
+    if not 0 <= args.target_error < TARGET_ERROR_MAX:
+        ap.error(f"--target-error {args.target_error}: must be a fraction in "
+                 f"[0, {TARGET_ERROR_MAX})")
     campaign = {"n_speeds": args.speeds, "n_stable": args.stable,
                 "airspeed_error": args.airspeed_error, "target_error": args.target_error}
     runs = []

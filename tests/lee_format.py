@@ -53,6 +53,9 @@ def point_airspeeds(hopf: float, fold: float, n: int = 7) -> np.ndarray:
 
 
 TRUTH_V_MAX = 40.0                # m/s: the truth branch traced up to here
+# the largest target error write_lee_campaign takes: a target half the orbit off is no
+# longer a CBC point near it
+TARGET_ERROR_MAX = 0.5
 
 
 def truth_of(physics: tuple) -> dict:
@@ -116,8 +119,9 @@ def write_lee_campaign(folder, physics: tuple, *, sigma: float, seed: int, n_spe
     stability and heave amplitude."""
     if not airspeed_error >= 0:
         raise ValueError(f"airspeed_error must be 0 or more m/s, not {airspeed_error}")
-    if not 0 <= target_error < 0.5:
-        raise ValueError(f"target_error must be a fraction in [0, 0.5), not {target_error}")
+    if not 0 <= target_error < TARGET_ERROR_MAX:
+        raise ValueError(f"target_error must be a fraction in [0, {TARGET_ERROR_MAX}), "
+                         f"not {target_error}")
     os.makedirs(folder, exist_ok=True)
     ref = truth_of(physics)
     speeds = point_airspeeds(ref["hopf"], ref["fold"], n_speeds)
