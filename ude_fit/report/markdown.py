@@ -111,6 +111,33 @@ def _guide_rounds(records: list[dict]) -> list[str]:
             "one-fold curve fitted to the points (docs/fitting.md):", "", *out]
 
 
+def _constraint_rounds(records: list[dict]) -> list[str]:
+    """What the constraint rounds (training.rounds.enforce_constraints) did to each start
+    they ran on, and what holding the conditions cost the data's misfit (files from before
+    the misfit was recorded give the rounds alone)."""
+    out = []
+    for r in records:
+        info = r.get("info") or {}
+        if not info.get("constraint_rounds"):
+            continue
+        broken = ", ".join(f"`--{c}`" for c in info.get("constraints_broken_before", []))
+        weights = ", ".join(f"`--{k[:-len('_weight')]}` {v:.3g}" for k, v in info.items()
+                            if k.endswith("_weight") and v)
+        before, after = info.get("misfit_before_rounds"), info.get("misfit_after_rounds")
+        cost = ("" if before is None or after is None or before <= 0 else
+                f"; the data's misfit {before:.3g} → {after:.3g} ({after / before - 1:+.0%})")
+        met = "all met" if info.get("constraints_met") else "not all met"
+        out.append(f"- start {r['start']}: broke {broken or 'a condition'}; "
+                   f"{info['constraint_rounds']} round(s), final weights {weights}, "
+                   f"{met}{cost}.")
+    if not out:
+        return []
+    return ["", "Constraint rounds: the starts whose trained model broke a condition of the "
+            "physics (docs/fitting.md) trained on with it weighted from the data's misfit; "
+            "the misfit is the periodic objective without the conditions, before the first "
+            "round and after the last:", "", *out]
+
+
 def _newly_broken(r: dict, g: dict) -> str:
     """The constraint conditions a guide round's model breaks that the trained one met."""
     new = [c for c in r.get("constraints_broken", [])
@@ -321,6 +348,7 @@ def render(metrics: dict, figures: dict) -> str:
                      for k, off in offsets) + ".")
     for d_ in st["dropped"]:
         L.append(f"\nStart {d_['start']} dropped: {d_['reason']}.")
+    L += _constraint_rounds(st["records"])
     L += _guide_rounds(st["records"])
     ident = mech.get("identification", {})
     sources, known = ident.get("sources", {}), ident.get("known", {})

@@ -69,16 +69,20 @@ def enforce_constraints(params, static, mech, data: TrainingData, cfg: TrainConf
     the last model that trained.
 
     Returns (params, loss, failed, info): ``descend``'s first three (none failed), and info:
-    rounds trained, whether every constraint is met at the end, each constraint's final
-    value and weight, and why the rounds stopped early where a round was undone."""
+    rounds trained, whether every constraint is met at the end, the conditions broken
+    before the first round, the data's misfit before the first round and after the last,
+    each constraint's final value and weight, and why the rounds stopped early where a
+    round was undone."""
     constraints = constraints_for(cfg)
     tolerance = np.array([c.tolerance for c in constraints])
     measure = lambda p: _misfit_and_constraints(p, static, mech, data, cfg, reg, constraints)
     weights = np.zeros(len(constraints))
-    rounds, stop = 0, None
+    rounds, stop, first_misfit, first_broken = 0, None, None, None
     while True:
         misfit, values = (np.asarray(x, float) for x in measure(params))
         broken = values > tolerance
+        if first_misfit is None:
+            first_misfit, first_broken = float(misfit), broken
         if not broken.any() or rounds == cfg.constraint_rounds:
             break
         with np.errstate(divide="ignore"):
@@ -96,7 +100,12 @@ def enforce_constraints(params, static, mech, data: TrainingData, cfg: TrainConf
             stop = failed[0]
             break
         params, loss, rounds, weights = new, new_loss, rounds + 1, tried
-    info = {"constraint_rounds": rounds, "constraints_met": bool(not broken.any())}
+    # what holding the conditions cost the fit: the data's misfit (the objective without
+    # penalties) before the first round and after the last (the same where none ran)
+    info = {"constraint_rounds": rounds, "constraints_met": bool(not broken.any()),
+            "constraints_broken_before": [c.option for c, b in zip(constraints, first_broken)
+                                          if b],
+            "misfit_before_rounds": first_misfit, "misfit_after_rounds": float(misfit)}
     if stop is not None:
         info["constraint_stop"] = f"round {rounds + 1} undone ({stop})"
     for c, v, w in zip(constraints, values, weights):
