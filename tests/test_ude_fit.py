@@ -71,6 +71,12 @@ def test_metrics_file_has_both_models_side_by_side(flutter_fit):
         if pts:                                  # the report says where they are
             where = f"{pts[0]['param']:.2f} @ {1e3 * pts[0]['amplitude']:.1f}"
             assert where in (flutter_fit["out"] / "report.md").read_text()
+        info = r["info"]                         # what the constraint rounds did and cost
+        broken = info["constraints_broken_before"]
+        assert set(broken) <= {"energy-rising", "rest-stability"}
+        assert (info["constraint_rounds"] > 0) == bool(broken), info
+        if not broken:
+            assert info["misfit_before_rounds"] == info["misfit_after_rounds"]
     assert m["data"]["stable"] >= 6 and m["data"]["unstable"] >= 6
     assert m["data"]["unstable_amplitude2_slope"] < 0
     assert "Hopf criticality: *sub*" in (flutter_fit["out"] / "report.md").read_text()

@@ -97,9 +97,9 @@ class StartRecord:
         return None if self.metrics is None else judged(self.metrics, self.controlled)
 
     def to_json(self) -> dict:
-        """The record as metrics.json keeps it: no model, the scalar training info, the
-        headline metrics, every fold's parameter and the fold count, and where each fold
-        is in amplitude as well (``fold_points``)."""
+        """The record as metrics.json keeps it: no model, the training info's scalars and
+        lists of numbers or names, the headline metrics, every fold's parameter and the fold
+        count, and where each fold is in amplitude as well (``fold_points``)."""
         out = {"start": self.start, "seed": self.seed, "approximator": self.approximator}
         if not self.ok:
             return {**out, "status": self.status, "reason": self.reason,
@@ -107,7 +107,7 @@ class StartRecord:
         out.update(train_seconds=self.train_seconds, status=self.status, loss=self.loss,
                    info={k: v for k, v in self.info.items()
                          if isinstance(v, (int, float, str, bool)) or (
-                             isinstance(v, list) and all(isinstance(x, float) for x in v))},
+                             isinstance(v, list) and all(isinstance(x, (float, str)) for x in v))},
                    seconds=self.seconds, adequate=self.adequate,
                    metrics={**{k: v for k, v in self.metrics.to_json().items()
                                if k in _RECORD_METRICS},
