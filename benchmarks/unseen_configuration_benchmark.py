@@ -11,7 +11,8 @@ runs on them as a researcher types it (a subprocess; only ``--starts``, ``--seed
 reference airspeeds for the report are given). The figures against the configured rig's
 own truth: adequate starts, the kept UDE's branch RMS, missed points, Hopf and fold
 airspeeds and their errors, the same for the mechanistic model and the points' backbone,
-and the fit's wall time.
+the rig's own diagram judged on the files as a fit is (``truth_on_points``: how close a
+perfect model can come where the points are off their orbits), and the fit's wall time.
 
 The configurations below were picked to differ from the design rig in stiffness, damping,
 mass and nonlinearity (each has one subcritical Hopf point and one fold), not from any
@@ -56,7 +57,9 @@ import time
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 sys.path.insert(0, ROOT)
 
-from tests.lee_format import TARGET_ERROR_MAX, write_lee_campaign  # noqa: E402
+from tests.lee_format import (TARGET_ERROR_MAX, TRUTH_V_MAX,  # noqa: E402
+                               write_lee_campaign)
+from tests.ude_fixtures import flutter_truth_orbits  # noqa: E402
 
 CONFIGURATIONS = {
     # stiffer in pitch and heave, less heave damping: Hopf 25.26, fold 18.46 m/s
@@ -92,6 +95,28 @@ def _figures(model: dict, truth: dict) -> dict:
     return out
 
 
+def truth_on_points(folder: str, physics: tuple) -> dict:
+    """The configured rig's own diagram judged as a fit is: its orbit of each point's
+    stability at the airspeed the file records, against the point's amplitude, the RMS over
+    the largest amplitude (missed where the rig has no such orbit there). Where the files'
+    airspeeds or targets are off their orbits this is how close a perfect model can come
+    (the fits' adequacy compares starts with each other, not with this)."""
+    from ude_fit.data import load
+    ds = load(folder, "flutter")
+    errors, missed = [], 0
+    for o in ds.orbits:
+        same = [t["amplitude"] for t in flutter_truth_orbits(
+            (float(o.parameter),), (), None, tuple(physics), v_max=TRUTH_V_MAX)
+            if t["stable"] is o.stable]
+        if same:
+            errors.append(o.amplitude - same[0])
+        else:
+            missed += 1
+    a_max = max(o.amplitude for o in ds.orbits)
+    rms = (sum(e * e for e in errors) / len(errors)) ** 0.5 / a_max if errors else None
+    return {"branch_rms": rms, "missed": missed}
+
+
 def run_one(physics: tuple, sigma: float, seed: int, starts: int | None, work: str,
             extra: tuple = (), campaign: dict | None = None) -> dict:
     folder = os.path.join(work, "points")
@@ -116,6 +141,7 @@ def run_one(physics: tuple, sigma: float, seed: int, starts: int | None, work: s
     labelled = [p for p in m["data"]["point_records"] if p.get("stable") is not None]
     result.update({
         "points": m["data"]["points"], "labelled": len(labelled),
+        "truth_on_points": truth_on_points(folder, physics),
         "adequate_starts": st["adequate"], "starts": st["requested"],
         "data_scatter": m["data"]["scatter"], "kept": st["kept"], "kept_by": st.get("kept_by"),
         "ude": _figures(m["ude"], truth), "mechanistic": _figures(m["mechanistic"], truth),
