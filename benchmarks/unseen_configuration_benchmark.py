@@ -103,15 +103,13 @@ def truth_on_points(folder: str, physics: tuple) -> dict:
     (the fits' adequacy compares starts with each other, not with this)."""
     from ude_fit.data import load
     ds = load(folder, "flutter")
-    errors, missed = [], 0
-    for o in ds.orbits:
-        same = [t["amplitude"] for t in flutter_truth_orbits(
-            (float(o.parameter),), (), None, tuple(physics), v_max=TRUTH_V_MAX)
-            if t["stable"] is o.stable]
-        if same:
-            errors.append(o.amplitude - same[0])
-        else:
-            missed += 1
+    truth = {}          # the first orbit of each stability at each airspeed, as traced
+    for t in flutter_truth_orbits(tuple(float(o.parameter) for o in ds.orbits), (), None,
+                                  tuple(physics), v_max=TRUTH_V_MAX):
+        truth.setdefault((t["parameter"], t["stable"]), t["amplitude"])
+    errors = [o.amplitude - truth[(o.parameter, o.stable)] for o in ds.orbits
+              if (o.parameter, o.stable) in truth]
+    missed = len(ds.orbits) - len(errors)
     a_max = max(o.amplitude for o in ds.orbits)
     rms = (sum(e * e for e in errors) / len(errors)) ** 0.5 / a_max if errors else None
     return {"branch_rms": rms, "missed": missed}

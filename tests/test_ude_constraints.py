@@ -37,12 +37,18 @@ def problem(tmp_path_factory):
     return data, mech, cfg, regularity_points(data)
 
 
+def _unknowns(data, k):
+    """SpeedDamping(k) split for training, with the measured orbits' own initial states and
+    periods: (params, static)."""
+    trainable, static = eqx.partition(SpeedDamping(jnp.asarray(k)), eqx.is_inexact_array)
+    return ({"corr": trainable, "dy0": jnp.zeros(data.ys[:, 0, :].shape),
+             "dT": jnp.zeros(data.period.shape)}, static)
+
+
 def _enforced(problem, k, **cfg_fields):
     data, mech, cfg, reg = problem
     cfg = dataclasses.replace(cfg, **cfg_fields)
-    trainable, static = eqx.partition(SpeedDamping(jnp.asarray(k)), eqx.is_inexact_array)
-    params = {"corr": trainable, "dy0": jnp.zeros(data.ys[:, 0, :].shape),
-              "dT": jnp.zeros(data.period.shape)}
+    params, static = _unknowns(data, k)
     before = [float(c.value(UDE(mech, SpeedDamping(jnp.asarray(k))), reg))
               for c in constraints_for(cfg)]
     out, _, failed, info = enforce_constraints(params, static, mech, data, cfg, reg,
@@ -88,11 +94,9 @@ def _misfit(problem, k, offsets=None):
     """The data's misfit (the periodic objective without penalties) of SpeedDamping(k), at
     the orbits' initial states and periods ``offsets`` (the measured ones by default)."""
     data, mech, cfg, reg = problem
-    trainable, static = eqx.partition(SpeedDamping(jnp.asarray(k)), eqx.is_inexact_array)
-    params = {"corr": trainable, "dy0": jnp.zeros(data.ys[:, 0, :].shape),
-              "dT": jnp.zeros(data.period.shape), **(offsets or {})}
-    return float(_misfit_and_constraints(params, static, mech, data, cfg, reg,
-                                         constraints_for(cfg))[0])
+    params, static = _unknowns(data, k)
+    return float(_misfit_and_constraints({**params, **(offsets or {})}, static, mech, data,
+                                         cfg, reg, constraints_for(cfg))[0])
 
 
 def test_a_broken_condition_is_enforced_without_a_weight_from_the_user(problem):
